@@ -1,0 +1,23 @@
+"""ff3d_tf: FastFlow3D and Waymo scene-flow dataset construction in TensorFlow/Keras."""
+from setuptools import find_packages, setup
+
+setup(
+    name="ff3d_tf",
+    version="0.1.0",
+    description="FastFlow3D (Jund et al., 'Scalable Scene Flow from Point Clouds in the Real World') in TF/Keras",
+    packages=find_packages(include=["ff3d_tf", "ff3d_tf.*"]),
+    python_requires=">=3.11",
+    install_requires=[
+        "tensorflow==2.21.0",
+        "tensorboard==2.21.0",
+        "numpy>=2,<3",
+        "pyyaml>=6",
+        "matplotlib>=3.8",
+        "pyarrow>=14",  # Argoverse 2 feather files
+        # waymo-open-dataset-tf-2-12-0==1.6.7 is installed with --no-deps by the Makefile (its pins downgrade TF).
+    ],
+    extras_require={
+        "beam": ["apache-beam[tfrecord]==2.77.0"],
+        "dev": ["pytest>=8"],
+    },
+)
