@@ -1,0 +1,246 @@
+"""Typed experiment configuration: frozen dataclasses, YAML overrides, validated before any work starts.
+
+YAML files in `configs/` hold only overrides of the defaults below (which are the paper's values where the paper gives
+one). `--set section.field=value` overrides on the command line; values are parsed with `yaml.safe_load`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from typing import Any
+
+import yaml
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot work; raised before any data is read or any step runs."""
+
+
+@dataclasses.dataclass(frozen=True)
+class GridConfig:
+    """Pillar grid in the vehicle frame at t0 (paper appendix: 512 x 512 pillars, 170 m x 170 m, z in [-3, 3] m)."""
+
+    num_pillars_x: int = 512
+    num_pillars_y: int = 512
+    x_range_m: tuple[float, float] = (-85.0, 85.0)
+    y_range_m: tuple[float, float] = (-85.0, 85.0)
+    z_range_m: tuple[float, float] = (-3.0, 3.0)
+
+    @property
+    def pillar_size_x_m(self) -> float:
+        return (self.x_range_m[1] - self.x_range_m[0]) / self.num_pillars_x
+
+    @property
+    def pillar_size_y_m(self) -> float:
+        return (self.y_range_m[1] - self.y_range_m[0]) / self.num_pillars_y
+
+    def validate(self) -> None:
+        for name in ("num_pillars_x", "num_pillars_y"):
+            n = getattr(self, name)
+            if n <= 0 or n % 8:
+                lo, hi = max(8, n // 8 * 8), n // 8 * 8 + 8
+                raise ConfigError(
+                    f"grid.{name}={n}: the U-Net halves the grid three times, so it must be a positive multiple of 8 "
+                    f"(e.g. {lo} or {hi})")
+        for name in ("x_range_m", "y_range_m", "z_range_m"):
+            lo, hi = getattr(self, name)
+            if not lo < hi:
+                raise ConfigError(f"grid.{name}={(lo, hi)}: need min < max")
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """Reading WOD records and turning them into model input pairs."""
+
+    laser_names: tuple[int, ...] = (1, 2, 3, 4, 5)  # TOP, FRONT, SIDE_LEFT, SIDE_RIGHT, REAR
+    returns: tuple[int, ...] = (1,)  # 1 = first return, 2 = second return
+    max_frame_gap_s: float = 0.15  # pairs further apart are skipped (WOD frames are ~0.1 s apart)
+    ego_motion_compensation: bool = True  # move the t-1 cloud into the t0 vehicle frame (paper appendix)
+    crop_to_grid: bool = True  # drop points outside the pillar grid in the input pipeline (they get no prediction)
+    skip_bad_records: bool = False  # False: a bad record stops the job with its file/record/field
+    shuffle_buffer: int = 64
+    cache_decoded: bool = False  # keep decoded pairs in memory (small datasets, e.g. the synthetic default)
+    # Point counts are padded up to the next bucket so XLA compiles once per bucket, not once per point count.
+    point_bucket_base: int = 16384
+    class_ablation: str = "none"  # none | pedestrian_cyclist_stationary | pedestrian_cyclist_ignored (paper Table 4)
+    max_training_segments: int = 0  # 0 = all; the data-size study sets this
+    point_keep_fraction: float = 1.0  # point-density study: random share of points kept per frame
+    remove_ground_below_z_m: float | None = None  # ground-removal study: drop points below this z (vehicle frame)
+
+    def validate(self) -> None:
+        if not self.laser_names or any(n not in (1, 2, 3, 4, 5) for n in self.laser_names):
+            raise ConfigError(f"data.laser_names={self.laser_names}: each must be 1..5 (TOP..REAR)")
+        if not self.returns or any(r not in (1, 2) for r in self.returns):
+            raise ConfigError(f"data.returns={self.returns}: each must be 1 or 2")
+        if self.max_frame_gap_s <= 0:
+            raise ConfigError("data.max_frame_gap_s must be > 0")
+        if self.point_bucket_base < 1:
+            raise ConfigError("data.point_bucket_base must be >= 1")
+        if self.class_ablation not in ("none", "pedestrian_cyclist_stationary", "pedestrian_cyclist_ignored"):
+            raise ConfigError(f"data.class_ablation={self.class_ablation!r} unknown")
+        if not 0.0 < self.point_keep_fraction <= 1.0:
+            raise ConfigError("data.point_keep_fraction must be in (0, 1]")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """FastFlow3D widths (paper architecture table). The defaults give exactly 5,233,571 parameters."""
+
+    point_feature_dim: int = 64  # row A
+    encoder_widths: tuple[int, int, int] = (64, 128, 256)  # rows C-F, G-L, M-R
+    encoder_depths: tuple[int, int, int] = (4, 6, 6)
+    # Upsample-Skip (d, d_b) for rows S, T, U; row V keeps U's depth.
+    decoder_dims: tuple[tuple[int, int], ...] = ((128, 128), (128, 64), (64, 64))
+    head_hidden_dim: int = 32  # row Y
+    jit_compile: bool = True
+    mixed_precision: bool = False  # bfloat16/float16 compute for the conv stack (GPU)
+
+    def validate(self) -> None:
+        if len(self.encoder_widths) != 3 or len(self.encoder_depths) != 3 or len(self.decoder_dims) != 3:
+            raise ConfigError("model: three encoder stages and three Upsample-Skip blocks (paper table)")
+        if any(d < 1 for d in self.encoder_depths):
+            raise ConfigError("model.encoder_depths: each stage needs at least its stride-2 convolution")
+        if self.decoder_dims[2][0] != self.point_feature_dim:
+            raise ConfigError("model.decoder_dims[2][0] must equal point_feature_dim (row X concatenates them)")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Training loop (paper appendix: Adam, lr 1e-6, betas 0.9/0.999, batch 64, L2 loss, background weight 0.1)."""
+
+    global_batch_size: int = 64
+    learning_rate: float = 1e-6
+    beta_1: float = 0.9
+    beta_2: float = 0.999
+    num_steps: int = 100000
+    background_weight: float = 0.1
+    grad_clip_norm: float | None = None
+    max_nonfinite_steps_in_row: int = 10
+    checkpoint_every_steps: int = 500
+    keep_checkpoints: int = 3
+    log_every_steps: int = 10
+    eval_every_steps: int = 1000
+    eval_num_batches: int = 4
+    seed: int = 0
+
+    def validate(self) -> None:
+        if self.global_batch_size < 1:
+            raise ConfigError("train.global_batch_size must be >= 1")
+        if not self.learning_rate > 0:
+            raise ConfigError("train.learning_rate must be > 0")
+        if self.num_steps < 0:
+            raise ConfigError("train.num_steps must be >= 0")
+        if not 0 <= self.background_weight:
+            raise ConfigError("train.background_weight must be >= 0")
+        if self.grad_clip_norm is not None and self.grad_clip_norm <= 0:
+            raise ConfigError("train.grad_clip_norm must be > 0 or null")
+        if self.max_nonfinite_steps_in_row < 1:
+            raise ConfigError("train.max_nonfinite_steps_in_row must be >= 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentConfig:
+    grid: GridConfig = GridConfig()
+    data: DataConfig = DataConfig()
+    model: ModelConfig = ModelConfig()
+    train: TrainConfig = TrainConfig()
+
+    def validate(self) -> "ExperimentConfig":
+        self.grid.validate()
+        self.data.validate()
+        self.model.validate()
+        self.train.validate()
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def save(self, path: str) -> None:
+        """Writes the resolved config (YAML) next to checkpoints and results."""
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        with open(path, "w") as f:
+            yaml.safe_dump(json.loads(json.dumps(self.to_dict())), f, sort_keys=False)
+
+
+def _coerce(value: Any, default: Any, where: str) -> Any:
+    """Checks/coerces an override against the type of the default value it replaces."""
+    if dataclasses.is_dataclass(default):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+        return _apply(default, value, where)
+    if isinstance(default, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        proto = default[0] if default else None
+        return tuple(_coerce(v, proto, f"{where}[{i}]") if proto is not None else v for i, v in enumerate(value))
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true/false, got {value!r}")
+        return value
+    if isinstance(default, int) and not isinstance(default, bool):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if isinstance(default, float) or default is None:
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if isinstance(value, str) and default is not None and not isinstance(default, str):
+            try:
+                return float(value)
+            except ValueError as e:
+                raise ConfigError(f"{where}: expected a number, got {value!r}") from e
+        return float(value) if isinstance(value, int) and default is not None else value
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def _apply(obj: Any, overrides: dict[str, Any], where: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(obj)}
+    changes = {}
+    for key, value in overrides.items():
+        if key not in fields:
+            raise ConfigError(f"unknown config key {where + '.' if where else ''}{key}; known: {sorted(fields)}")
+        changes[key] = _coerce(value, getattr(obj, key), f"{where + '.' if where else ''}{key}")
+    return dataclasses.replace(obj, **changes)
+
+
+def _set_dotted(tree: dict[str, Any], dotted: str, value: Any) -> None:
+    parts = dotted.split(".")
+    node = tree
+    for p in parts[:-1]:
+        node = node.setdefault(p, {})
+        if not isinstance(node, dict):
+            raise ConfigError(f"--set {dotted}: {p} is not a section")
+    node[parts[-1]] = value
+
+
+def load_config(path: str | None = None, overrides: list[str] | tuple[str, ...] = ()) -> ExperimentConfig:
+    """Defaults <- YAML file (overrides only) <- `key=value` overrides; validated before it is returned."""
+    tree: dict[str, Any] = {}
+    if path:
+        try:
+            with open(path) as f:
+                loaded = yaml.safe_load(f) or {}
+        except OSError as e:
+            raise ConfigError(f"cannot read config {path}: {e}") from e
+        except yaml.YAMLError as e:
+            raise ConfigError(f"config {path} is not valid YAML: {e}") from e
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"config {path}: top level must be a mapping of sections")
+        tree = loaded
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected key=value, e.g. train.learning_rate=1e-4")
+        key, raw = item.split("=", 1)
+        _set_dotted(tree, key.strip(), yaml.safe_load(raw))
+    try:
+        cfg = _apply(ExperimentConfig(), tree, "")
+    except ConfigError as e:
+        raise ConfigError(f"{path or '<defaults>'}: {e}") from None
+    return cfg.validate()

@@ -1,0 +1,61 @@
+"""Every data schema of the project, declared once. The reader, the synthetic writer, the model and the tests import it.
+
+Decoded frame (`ff3d_tf.data.waymo.decode_frame`; one WOD `Frame`, N points of the selected lidars and returns):
+
+| key              | dtype   | shape  | frame / unit                                                            |
+|------------------|---------|--------|-------------------------------------------------------------------------|
+| points_xyz       | float32 | [N,3]  | vehicle frame at the frame timestamp, metres                            |
+| intensity        | float32 | [N]    | WOD range image channel 1                                               |
+| elongation       | float32 | [N]    | WOD range image channel 2                                               |
+| flow_mps         | float32 | [N,3]  | vx, vy, vz in the vehicle frame of this frame, m/s, t-1 -> t0, ego-free  |
+| class_id         | int32   | [N]    | -1 no label, 0 background, 1 vehicle, 2 pedestrian, 3 sign, 4 cyclist   |
+| laser_name       | int32   | [N]    | 1 TOP, 2 FRONT, 3 SIDE_LEFT, 4 SIDE_RIGHT, 5 REAR                       |
+| pose             | float64 | [4,4]  | vehicle -> world                                                        |
+| timestamp_micros | int64   | []     | microseconds                                                            |
+
+Points are ordered by ascending laser name, then return, then row-major pixel order (the official conversion's order).
+
+Model input example (`ff3d_tf.data.pairs`; one pair t-1 -> t0, N0 / N1 points):
+
+| key                    | dtype   | shape   | meaning                                                               |
+|------------------------|---------|---------|-----------------------------------------------------------------------|
+| points_xyz_t0          | float32 | [N0,3]  | t0 cloud, vehicle frame at t0, metres                                 |
+| point_features_t0      | float32 | [N0,2]  | intensity, elongation                                                 |
+| points_xyz_tm1_in_t0   | float32 | [N1,3]  | t-1 cloud moved into the vehicle frame at t0 (raw t-1 frame if the   |
+|                        |         |         | ego-motion compensation is switched off)                              |
+| point_features_tm1     | float32 | [N1,2]  | intensity, elongation                                                 |
+| flow_mps_t0            | float32 | [N0,3]  | label, m/s, vehicle frame at t0                                       |
+| class_id_t0            | int32   | [N0]    | label class (-1 = no flow label: input only, excluded from loss)      |
+| pose_t0, pose_tm1      | float64 | [4,4]   | vehicle -> world at each time (kept for the ego-motion study)         |
+| num_points_t0/_tm1     | int32   | []      | real point counts (batches are padded; see point_mask_*)              |
+
+Batched model input adds `point_mask_t0` [B,N0] and `point_mask_tm1` [B,N1] (True = a real point, never padding).
+"""
+from __future__ import annotations
+
+# WOD dataset.proto LaserName.
+LASER_NAMES = {1: "TOP", 2: "FRONT", 3: "SIDE_LEFT", 4: "SIDE_RIGHT", 5: "REAR"}
+ALL_LASERS = (1, 2, 3, 4, 5)
+
+# Flow class channel of range_image_flow_compressed (paper appendix "Dataset Format"); label.proto Type uses the same
+# numbers for the four object types.
+CLASS_NO_LABEL = -1
+CLASS_BACKGROUND = 0
+CLASS_VEHICLE = 1
+CLASS_PEDESTRIAN = 2
+CLASS_SIGN = 3
+CLASS_CYCLIST = 4
+CLASS_NAMES = {0: "background", 1: "vehicle", 2: "pedestrian", 3: "sign", 4: "cyclist"}
+OBJECT_CLASSES = (1, 2, 3, 4)
+
+FRAME_KEYS = ("points_xyz", "intensity", "elongation", "flow_mps", "class_id", "laser_name", "pose",
+              "timestamp_micros")
+
+PAIR_FLOAT_POINT_KEYS = ("points_xyz_t0", "point_features_t0", "flow_mps_t0")
+PAIR_KEYS = ("points_xyz_t0", "point_features_t0", "points_xyz_tm1_in_t0", "point_features_tm1", "flow_mps_t0",
+             "class_id_t0", "pose_t0", "pose_tm1", "num_points_t0", "num_points_tm1")
+
+# Range image channel layouts (dataset.proto comments; flow: paper appendix).
+RANGE_CHANNELS = ("range", "intensity", "elongation", "is_in_nlz")
+FLOW_CHANNELS = ("vx", "vy", "vz", "class")
+TOP_POSE_CHANNELS = ("roll", "pitch", "yaw", "x", "y", "z")
