@@ -1,0 +1,179 @@
+"""Frame pairs (t-1, t0) -> model input examples, in a `tf.data` pipeline with no Python per frame.
+
+Per segment file: records are decoded in graph (parallel), consecutive frames are paired by timestamp (gap at most
+`max_frame_gap_s`; others are skipped), the t-1 cloud is moved into the vehicle frame at t0 with
+T = inv(pose_t0) @ pose_tm1 (paper appendix), and the study options (class ablation, density, ground removal) apply.
+Batches are padded to point-count buckets (see `bucket_size`) so that XLA compiles once per bucket.
+"""
+from __future__ import annotations
+
+import glob
+import os
+
+import numpy as np
+import tensorflow as tf
+
+from ff3d_tf import schema
+from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.data import waymo
+
+# Bucket sizes are base * {1, 1.5, 2, 3, 4, 6, 8, 12, ...}: at most 50% padding, ~2 buckets per doubling.
+_BUCKET_MULTIPLIERS = np.array(sorted({m * 2 ** k for k in range(0, 14) for m in (1.0, 1.5)}))
+
+
+def bucket_size(num_points: int, base: int) -> int:
+    """Smallest bucket >= num_points (Python twin of the in-graph rounding)."""
+    sizes = (_BUCKET_MULTIPLIERS * base).astype(np.int64)
+    return int(sizes[np.searchsorted(sizes, max(int(num_points), 1))])
+
+
+def _bucket_size_tf(n, base: int):
+    sizes = tf.constant((_BUCKET_MULTIPLIERS * base).astype(np.int32))
+    return tf.gather(sizes, tf.searchsorted(sizes, tf.reshape(tf.maximum(n, 1), [1]))[0])
+
+
+def list_segment_files(data_dir_or_glob: str) -> list[str]:
+    """TFRecord files of a directory (sorted) or a glob."""
+    if os.path.isdir(data_dir_or_glob):
+        files = sorted(glob.glob(os.path.join(data_dir_or_glob, "*.tfrecord*")))
+    else:
+        files = sorted(glob.glob(data_dir_or_glob))
+    if not files:
+        raise FileNotFoundError(f"no TFRecord files at {data_dir_or_glob} (expected *.tfrecord)")
+    return files
+
+
+def decode_options(cfg: ExperimentConfig, inference_only: bool = False) -> waymo.DecodeOptions:
+    return waymo.DecodeOptions(tuple(cfg.data.laser_names), tuple(cfg.data.returns), not inference_only)
+
+
+def transform_points(points_xyz, transform):
+    """[N,3] float32 through a 4x4 float64 transform (computed in float64)."""
+    p = tf.cast(points_xyz, tf.float64)
+    return tf.cast(tf.linalg.matmul(p, transform[:3, :3], transpose_b=True) + transform[:3, 3], tf.float32)
+
+
+def make_pair(frame_tm1: dict, frame_t0: dict, cfg: ExperimentConfig, seed=None) -> dict:
+    """One model input example (keys: `ff3d_tf.schema.PAIR_KEYS`) from two decoded frames (tensors)."""
+    pose_t0, pose_tm1 = frame_t0["pose"], frame_tm1["pose"]
+    if cfg.data.ego_motion_compensation:
+        points_tm1 = transform_points(frame_tm1["points_xyz"], tf.linalg.inv(pose_t0) @ pose_tm1)
+    else:
+        points_tm1 = tf.identity(frame_tm1["points_xyz"])
+    ex = {
+        "points_xyz_t0": frame_t0["points_xyz"],
+        "point_features_t0": tf.stack([frame_t0["intensity"], frame_t0["elongation"]], -1),
+        "flow_mps_t0": frame_t0["flow_mps"],
+        "class_id_t0": frame_t0["class_id"],
+        "points_xyz_tm1_in_t0": points_tm1,
+        "point_features_tm1": tf.stack([frame_tm1["intensity"], frame_tm1["elongation"]], -1),
+    }
+    ex = _apply_studies(ex, cfg, seed)
+    ex["pose_t0"], ex["pose_tm1"] = pose_t0, pose_tm1
+    ex["num_points_t0"] = tf.shape(ex["points_xyz_t0"])[0]
+    ex["num_points_tm1"] = tf.shape(ex["points_xyz_tm1_in_t0"])[0]
+    return ex
+
+
+T0_POINT_KEYS = ("points_xyz_t0", "point_features_t0", "flow_mps_t0", "class_id_t0")
+TM1_POINT_KEYS = ("points_xyz_tm1_in_t0", "point_features_tm1")
+
+
+def _keep(ex: dict, keep_t0, keep_tm1) -> dict:
+    return {k: tf.boolean_mask(v, keep_t0 if k in T0_POINT_KEYS else keep_tm1) for k, v in ex.items()}
+
+
+def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
+    d, g = cfg.data, cfg.grid
+    cls = ex["class_id_t0"]
+    if d.class_ablation != "none":
+        ablated = (cls == schema.CLASS_PEDESTRIAN) | (cls == schema.CLASS_CYCLIST)
+        if d.class_ablation == "pedestrian_cyclist_stationary":  # paper Table 4 "Stationary": background, no motion
+            ex["class_id_t0"] = tf.where(ablated, schema.CLASS_BACKGROUND, cls)
+            ex["flow_mps_t0"] = tf.where(ablated[:, None], 0.0, ex["flow_mps_t0"])
+        else:  # "Ignored": no target label
+            ex["class_id_t0"] = tf.where(ablated, schema.CLASS_NO_LABEL, cls)
+    keep_t0 = tf.ones_like(cls, tf.bool)
+    keep_tm1 = tf.ones(tf.shape(ex["points_xyz_tm1_in_t0"])[:1], tf.bool)
+    if d.crop_to_grid:
+        def inside(p):
+            return ((p[:, 0] >= g.x_range_m[0]) & (p[:, 0] < g.x_range_m[1]) & (p[:, 1] >= g.y_range_m[0]) &
+                    (p[:, 1] < g.y_range_m[1]) & (p[:, 2] >= g.z_range_m[0]) & (p[:, 2] <= g.z_range_m[1]))
+        keep_t0 &= inside(ex["points_xyz_t0"])
+        keep_tm1 &= inside(ex["points_xyz_tm1_in_t0"])
+    if d.remove_ground_below_z_m is not None:
+        keep_t0 &= ex["points_xyz_t0"][:, 2] >= d.remove_ground_below_z_m
+        keep_tm1 &= ex["points_xyz_tm1_in_t0"][:, 2] >= d.remove_ground_below_z_m
+    if d.point_keep_fraction < 1.0:
+        keep_t0 &= tf.random.stateless_uniform(tf.shape(keep_t0), seed) < d.point_keep_fraction
+        keep_tm1 &= tf.random.stateless_uniform(tf.shape(keep_tm1), seed + 1) < d.point_keep_fraction
+    return _keep(ex, keep_t0, keep_tm1)
+
+
+def _frames_dataset(path: str, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool):
+    options = decode_options(cfg, inference_only)
+    records = tf.data.TFRecordDataset(path).enumerate()
+
+    def decode(index, record):
+        source = tf.strings.join([path, " record ", tf.strings.as_string(index)])
+        frame = waymo.decode_frame_tensors(record, source, options)
+        frame["num_points"] = tf.shape(frame["points_xyz"])[0]
+        return frame
+
+    frames = records.map(decode, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+    if skip_bad_records:
+        frames = frames.ignore_errors(log_warning=True)
+    return frames
+
+
+def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool):
+    frames = _frames_dataset(path, cfg, inference_only, skip_bad_records)
+
+    def window_to_pair(window):
+        return tf.data.Dataset.zip(window).padded_batch(2)
+
+    max_gap_us = int(round(cfg.data.max_frame_gap_s * 1e6))
+
+    def to_example(w):
+        def frame(i):
+            n = w["num_points"][i]
+            return {k: (v[i][:n] if k not in ("pose", "timestamp_micros", "num_points") else v[i])
+                    for k, v in w.items()}
+        f_tm1, f_t0 = frame(0), frame(1)
+        seed = tf.stack([tf.cast(f_t0["timestamp_micros"] % 2147483647, tf.int32), 7])
+        return make_pair(f_tm1, f_t0, cfg, seed)
+
+    pairs = frames.window(2, shift=1, drop_remainder=True).flat_map(window_to_pair)
+    pairs = pairs.filter(lambda w: tf.logical_and(w["timestamp_micros"][1] - w["timestamp_micros"][0] > 0,
+                                                  w["timestamp_micros"][1] - w["timestamp_micros"][0] <= max_gap_us))
+    return pairs.map(to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+
+
+def pair_dataset(files: list[str], cfg: ExperimentConfig, *, inference_only: bool = False,
+                 skip_bad_records: bool | None = None) -> tf.data.Dataset:
+    """Unbatched model input examples of all consecutive frame pairs of the given segment files, in file order."""
+    skip = cfg.data.skip_bad_records if skip_bad_records is None else skip_bad_records
+    files_ds = tf.data.Dataset.from_tensor_slices(list(files))
+    return files_ds.interleave(lambda f: _pairs_of_file(f, cfg, inference_only, skip), cycle_length=2,
+                               num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+
+
+def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_remainder: bool = False):
+    """Pads point arrays to a common bucketed size and adds `point_mask_t0` / `point_mask_tm1`."""
+    ds = ds.padded_batch(batch_size, drop_remainder=drop_remainder)
+
+    def pad(batch):
+        out = dict(batch)
+        for suffix, keys in (("t0", T0_POINT_KEYS), ("tm1", TM1_POINT_KEYS)):
+            n = tf.shape(batch[keys[0]])[1]
+            target = _bucket_size_tf(n, bucket_base)
+            for k in keys:
+                v = batch[k]
+                paddings = [[0, 0], [0, target - n]] + [[0, 0]] * (len(v.shape) - 2)
+                out[k] = tf.pad(v, paddings, constant_values=-1 if k == "class_id_t0" else 0)
+            out[f"point_mask_{suffix}"] = tf.sequence_mask(batch[f"num_points_{suffix}"], target)
+        # padded_batch fills class ids with 0 (background); the masks say what is real, and class of padding is -1.
+        out["class_id_t0"] = tf.where(out["point_mask_t0"], out["class_id_t0"], -1)
+        return out
+
+    return ds.map(pad, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)

@@ -1,0 +1,170 @@
+"""Scene-flow metrics as a Keras metric that keeps sums and counts (adds up over batches and replicas).
+
+`SceneFlowMetrics(moving_threshold_mps=0.5)`; `update_state(flow_true, flow_pred, class_id)`; `result()` -> dict:
+- "{cls}/{subset}/{stat}": cls in background, vehicle, pedestrian, sign, cyclist, all (= classes 0..4); subset in all,
+  moving, stationary (moving: |flow_true| >= threshold); stat in mean_l2_mps, mean_l2_mph, frac_l2_le_0.1,
+  frac_l2_le_1.0, count (paper Table 2).
+- "{cls}/moving_precision", "{cls}/moving_recall": moving vs stationary classification of the prediction against the
+  truth, both by the threshold (paper Table 4).
+- "three_way/{fg_dynamic,fg_static,bg_static,mean}_epe_m": Argoverse 2 three-way EPE in metres per 0.1 s
+  (foreground = classes 1..4, dynamic = |flow_true| >= threshold); mean over the non-empty three.
+- "bucketed/{cls}/{static_epe_m,dynamic_norm_epe}" and "bucketed/mean_{static,dynamic}": bucketed normalized EPE
+  (Khatri et al. 2024): speed buckets of 0.04 m per 0.1 s up to 2.0, plus [2.0, inf); static = mean EPE of the first
+  bucket; dynamic = mean over the other non-empty buckets of (bucket mean EPE / bucket mean speed); NaN-mean over
+  classes.
+Class -1 points (and points outside `point_valid`) are ignored. An empty cell is NaN, never 0.
+"""
+from __future__ import annotations
+
+import keras
+import numpy as np
+import tensorflow as tf
+
+from ff3d_tf import schema
+
+CLASS_KEYS = ("background", "vehicle", "pedestrian", "sign", "cyclist")
+ALL_CLASS_KEYS = CLASS_KEYS + ("all",)
+SUBSETS = ("all", "moving", "stationary")
+MPS_TO_MPH = 2.2369362920544
+SECONDS_PER_FRAME = 0.1  # AV2-style metrics are in metres per 0.1 s
+BUCKET_EDGES_M = np.round(np.arange(0.0, 2.0 + 1e-9, 0.04), 6)  # 0, 0.04, ..., 2.0 -> 50 buckets + [2.0, inf)
+NUM_BUCKETS = len(BUCKET_EDGES_M)
+
+
+class SceneFlowMetrics(keras.metrics.Metric):
+    def __init__(self, moving_threshold_mps: float = 0.5, name: str = "scene_flow_metrics", **kwargs):
+        super().__init__(name=name, **kwargs)
+        self.moving_threshold_mps = float(moving_threshold_mps)
+
+        def var(name, shape):
+            return self.add_variable(shape=shape, initializer="zeros", dtype="float64", aggregation="sum",
+                                     name=name)
+        # [class 0..4, subset all/moving/stationary, stat]: sum_l2, count, count_le_0.1, count_le_1.0
+        self.cells = var("cells", (5, 3, 4))
+        # [class, (tp, pred_moving, true_moving)]
+        self.moving_cls = var("moving_cls", (5, 3))
+        # [class, bucket, (sum_epe_m, sum_speed_m, count)]
+        self.buckets = var("buckets", (5, NUM_BUCKETS, 3))
+
+    def update_state(self, flow_true, flow_pred, class_id, point_valid=None, sample_weight=None):
+        flow_true = tf.reshape(tf.cast(flow_true, tf.float64), [-1, 3])
+        flow_pred = tf.reshape(tf.cast(flow_pred, tf.float64), [-1, 3])
+        class_id = tf.reshape(tf.cast(class_id, tf.int32), [-1])
+        keep = class_id >= 0
+        if point_valid is not None:
+            keep = tf.logical_and(keep, tf.reshape(tf.cast(point_valid, tf.bool), [-1]))
+        cls = tf.where(keep, tf.clip_by_value(class_id, 0, 4), 0)
+        err = tf.norm(flow_pred - flow_true, axis=-1)
+        speed_true = tf.norm(flow_true, axis=-1)
+        speed_pred = tf.norm(flow_pred, axis=-1)
+        moving = speed_true >= self.moving_threshold_mps
+        keep_f = tf.cast(keep, tf.float64)
+        onehot = tf.one_hot(cls, 5, dtype=tf.float64) * keep_f[:, None]  # [N, 5]
+        subset = tf.stack([tf.ones_like(keep_f), tf.cast(moving, tf.float64), 1.0 - tf.cast(moving, tf.float64)],
+                          -1)  # [N, 3]
+        stats = tf.stack([err, tf.ones_like(err), tf.cast(err <= 0.1, tf.float64), tf.cast(err <= 1.0, tf.float64)],
+                         -1)  # [N, 4]
+        self.cells.assign_add(tf.einsum("nc,ns,nk->csk", onehot, subset, stats))
+        pred_moving = tf.cast(speed_pred >= self.moving_threshold_mps, tf.float64)
+        true_moving = tf.cast(moving, tf.float64)
+        self.moving_cls.assign_add(tf.einsum("nc,nk->ck", onehot,
+                                             tf.stack([pred_moving * true_moving, pred_moving, true_moving], -1)))
+        speed_m = speed_true * SECONDS_PER_FRAME
+        bucket = tf.clip_by_value(tf.searchsorted(tf.constant(BUCKET_EDGES_M[1:]), speed_m[None, :],
+                                                  side="right")[0], 0, NUM_BUCKETS - 1)
+        onehot_b = tf.one_hot(bucket, NUM_BUCKETS, dtype=tf.float64)
+        vals = tf.stack([err * SECONDS_PER_FRAME, speed_m, tf.ones_like(err)], -1)
+        self.buckets.assign_add(tf.einsum("nc,nb,nk->cbk", onehot, onehot_b, vals))
+
+    def reset_state(self):
+        for v in (self.cells, self.moving_cls, self.buckets):
+            v.assign(tf.zeros_like(v))
+
+    def result(self) -> dict[str, float]:
+        return compute_results(np.asarray(self.cells.numpy()), np.asarray(self.moving_cls.numpy()),
+                               np.asarray(self.buckets.numpy()))
+
+    def get_config(self):
+        return {"name": self.name, "moving_threshold_mps": self.moving_threshold_mps}
+
+
+def _div(a, b):
+    return float(a / b) if b > 0 else float("nan")
+
+
+def _nanmean(values):
+    values = [v for v in values if not np.isnan(v)]
+    return float(np.mean(values)) if values else float("nan")
+
+
+def compute_results(cells: np.ndarray, moving_cls: np.ndarray, buckets: np.ndarray) -> dict[str, float]:
+    """The result dict from the accumulated sums (see the module docstring)."""
+    out: dict[str, float] = {}
+    all_cells = np.concatenate([cells, cells.sum(0, keepdims=True)], 0)
+    all_moving = np.concatenate([moving_cls, moving_cls.sum(0, keepdims=True)], 0)
+    for ci, cname in enumerate(ALL_CLASS_KEYS):
+        for si, sname in enumerate(SUBSETS):
+            s, n, le01, le1 = all_cells[ci, si]
+            key = f"{cname}/{sname}/"
+            out[key + "mean_l2_mps"] = _div(s, n)
+            out[key + "mean_l2_mph"] = _div(s, n) * MPS_TO_MPH
+            out[key + "frac_l2_le_0.1"] = _div(le01, n)
+            out[key + "frac_l2_le_1.0"] = _div(le1, n)
+            out[key + "count"] = float(n)
+        tp, pred_m, true_m = all_moving[ci]
+        out[f"{cname}/moving_precision"] = _div(tp, pred_m)
+        out[f"{cname}/moving_recall"] = _div(tp, true_m)
+    fg = cells[1:].sum(0)  # [subset, stat]
+    bg = cells[0]
+    fg_dyn = _div(fg[1, 0], fg[1, 1]) * SECONDS_PER_FRAME
+    fg_sta = _div(fg[2, 0], fg[2, 1]) * SECONDS_PER_FRAME
+    bg_sta = _div(bg[2, 0], bg[2, 1]) * SECONDS_PER_FRAME
+    out["three_way/fg_dynamic_epe_m"] = fg_dyn
+    out["three_way/fg_static_epe_m"] = fg_sta
+    out["three_way/bg_static_epe_m"] = bg_sta
+    out["three_way/mean_epe_m"] = _nanmean([fg_dyn, fg_sta, bg_sta])
+    statics, dynamics = [], []
+    for ci, cname in enumerate(CLASS_KEYS):
+        b = buckets[ci]
+        static = _div(b[0, 0], b[0, 2])
+        ratios = [(b[k, 0] / b[k, 2]) / (b[k, 1] / b[k, 2]) for k in range(1, NUM_BUCKETS)
+                  if b[k, 2] > 0 and b[k, 1] > 0]
+        dynamic = float(np.mean(ratios)) if ratios else float("nan")
+        out[f"bucketed/{cname}/static_epe_m"] = static
+        out[f"bucketed/{cname}/dynamic_norm_epe"] = dynamic
+        statics.append(static)
+        dynamics.append(dynamic)
+    out["bucketed/mean_static"] = _nanmean(statics)
+    out["bucketed/mean_dynamic"] = _nanmean(dynamics)
+    return out
+
+
+def format_paper_table(result: dict[str, float], title: str = "") -> str:
+    """The paper's Table 2 layout (vehicle / pedestrian / cyclist x all / moving / stationary, and background)."""
+    cols = [(c, s) for c in ("vehicle", "pedestrian", "cyclist") for s in SUBSETS] + [("background", "all")]
+    head1 = f"{'':<14}" + "".join(f"{c[:10]:>10}" for c, _ in cols)
+    head2 = f"{'error metric':<14}" + "".join(f"{s[:10]:>10}" for _, s in cols)
+    rows = []
+    for label, stat, pct in (("mean (m/s)", "mean_l2_mps", False), ("mean (mph)", "mean_l2_mph", False),
+                             ("<= 0.1 m/s", "frac_l2_le_0.1", True), ("<= 1.0 m/s", "frac_l2_le_1.0", True)):
+        cells = []
+        for c, s in cols:
+            v = result[f"{c}/{s}/{stat}"]
+            cells.append(f"{'nan':>10}" if np.isnan(v) else (f"{100 * v:>9.1f}%" if pct else f"{v:>10.2f}"))
+        rows.append(f"{label:<14}" + "".join(cells))
+    counts = f"{'points':<14}" + "".join(f"{int(result[f'{c}/{s}/count']):>10d}" for c, s in cols)
+    return "\n".join(([title] if title else []) + [head1, head2] + rows + [counts])
+
+
+def format_extra_tables(result: dict[str, float]) -> str:
+    lines = [f"{'moving classification':<22}{'precision':>10}{'recall':>10}"]
+    for c in ("vehicle", "pedestrian", "cyclist", "background", "all"):
+        p, r = result[f"{c}/moving_precision"], result[f"{c}/moving_recall"]
+        lines.append(f"{c:<22}{p:>10.3f}{r:>10.3f}")
+    lines.append("three-way EPE (m per 0.1 s): " + ", ".join(
+        f"{k} {result[f'three_way/{k}_epe_m']:.4f}" for k in ("fg_dynamic", "fg_static", "bg_static", "mean")))
+    lines.append("bucketed normalized EPE: " + ", ".join(
+        f"{c} static {result[f'bucketed/{c}/static_epe_m']:.4f} dynamic {result[f'bucketed/{c}/dynamic_norm_epe']:.3f}"
+        for c in CLASS_KEYS) + f"; mean static {result['bucketed/mean_static']:.4f} dynamic "
+        f"{result['bucketed/mean_dynamic']:.3f}")
+    return "\n".join(lines)

@@ -1,0 +1,123 @@
+"""FastFlow3D (Jund et al., Sec. 4 and the appendix architecture table) as a Keras 3 model.
+
+Inputs (dict, batched and padded; see `ff3d_tf.schema`):
+  points_xyz_t0 [B,N0,3], point_features_t0 [B,N0,2], point_mask_t0 [B,N0] bool,
+  points_xyz_tm1_in_t0 [B,N1,3], point_features_tm1 [B,N1,2], point_mask_tm1 [B,N1] bool.
+Outputs (dict): flow_mps [B,N0,3] (m/s, vehicle frame at t0; 0 where invalid), point_valid [B,N0] bool.
+
+Both clouds share the point encoder (A) and the convolutional encoder (C-R): the two frames are stacked along the
+batch axis and pass through the same layers once. The decoder (S, T, U, V) takes the depth-wise concatenation of the
+two encoders' layers (t0 first), and the head (W-Z) regresses flow for the t0 points.
+"""
+from __future__ import annotations
+
+import string
+
+import keras
+import tensorflow as tf
+
+from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.model import layers as L
+
+INPUT_KEYS = ("points_xyz_t0", "point_features_t0", "point_mask_t0", "points_xyz_tm1_in_t0", "point_features_tm1",
+              "point_mask_tm1")
+
+
+@keras.saving.register_keras_serializable(package="ff3d_tf")
+class FastFlow3D(keras.Model):
+    def __init__(self, num_pillars_x=512, num_pillars_y=512, x_range_m=(-85.0, 85.0), y_range_m=(-85.0, 85.0),
+                 z_range_m=(-3.0, 3.0), point_feature_dim=64, encoder_widths=(64, 128, 256), encoder_depths=(4, 6, 6),
+                 decoder_dims=((128, 128), (128, 64), (64, 64)), head_hidden_dim=32, **kwargs):
+        super().__init__(**kwargs)
+        self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
+        self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
+        self.point_feature_dim = int(point_feature_dim)
+        self.encoder_widths = tuple(int(w) for w in encoder_widths)
+        self.encoder_depths = tuple(int(d) for d in encoder_depths)
+        self.decoder_dims = tuple(tuple(int(v) for v in d) for d in decoder_dims)
+        self.head_hidden_dim = int(head_hidden_dim)
+
+        self.pillarize = L.Pillarize(num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, name="pillarize")
+        self.point_encoder = L.PointEncoder(self.point_feature_dim, name="A")
+        self.scatter = L.ScatterToGrid(num_pillars_x, num_pillars_y, name="B")
+        letters = iter(string.ascii_uppercase[2:] + "".join(f"E{i}" for i in range(100)))
+        self.encoder_stages = []
+        for width, depth in zip(self.encoder_widths, self.encoder_depths):
+            self.encoder_stages.append([L.ConvBlock(width, strides=2 if i == 0 else 1, name=next(letters))
+                                        for i in range(depth)])
+        self.upsample_skips = [L.UpsampleSkip(d, db, name=n) for (d, db), n in zip(self.decoder_dims, "STU")]
+        self.conv_v = keras.layers.Conv2D(self.decoder_dims[-1][0], 3, padding="same", use_bias=False,
+                                          kernel_initializer="glorot_uniform", name="V")
+        self.head_y = L.UngridHead(self.head_hidden_dim, name="Y")
+        self.head_z = keras.layers.Dense(3, kernel_initializer="glorot_uniform", name="Z")
+
+    def call(self, inputs, training=False):
+        batch = tf.shape(inputs["points_xyz_t0"])[0]
+        enc_t0, ids_t0, valid_t0 = self.pillarize(inputs["points_xyz_t0"], inputs["point_features_t0"],
+                                                  tf.cast(inputs["point_mask_t0"], tf.bool))
+        enc_tm1, ids_tm1, valid_tm1 = self.pillarize(inputs["points_xyz_tm1_in_t0"], inputs["point_features_tm1"],
+                                                     tf.cast(inputs["point_mask_tm1"], tf.bool))
+        # Row A once over both clouds (shared weights, one set of BN statistics): [B, N0+N1, 8].
+        num_t0 = tf.shape(enc_t0)[1]
+        valid_both = tf.concat([valid_t0, valid_tm1], 1)
+        feat_both = self.point_encoder(tf.concat([enc_t0, enc_tm1], 1), valid_both, training=training)
+        feat_t0 = feat_both[:, :num_t0]
+        # Row B: both frames into one [2B,H,W,C] grid, t0 samples first (tm1 ids shifted by B grids).
+        cells = self.num_pillars_x * self.num_pillars_y
+        ids_both = tf.concat([ids_t0, ids_tm1 + batch * cells], 1)
+        ids_both = tf.where(valid_both, ids_both, 2 * batch * cells)
+        bev = tf.cast(self.scatter(feat_both, ids_both, 2 * batch), self.compute_dtype)  # [2B,H,W,C]
+
+        skips = [bev]
+        x = bev
+        for stage in self.encoder_stages:
+            for block in stage:
+                x = block(x, training=training)
+            skips.append(x)
+
+        def both(t):  # [2B,h,w,c] -> [B,h,w,2c], t0 first
+            return tf.concat([t[:batch], t[batch:]], -1)
+
+        # skips: B, F, L, R (paper rows); decoder S(R*, L*), T(S, F*), U(T, B*), V(U).
+        x = self.upsample_skips[0]([both(skips[3]), both(skips[2])])
+        x = self.upsample_skips[1]([x, both(skips[1])])
+        x = self.upsample_skips[2]([x, both(skips[0])])
+        grid_flow_embedding = self.conv_v(x)  # [B,H,W,64]
+        y = self.head_y([grid_flow_embedding, tf.cast(feat_t0, self.compute_dtype),
+                         tf.cast(enc_t0, self.compute_dtype), ids_t0])
+        flow = tf.cast(self.head_z(y), tf.float32)
+        flow = tf.where(valid_t0[..., None], flow, tf.zeros_like(flow))
+        return {"flow_mps": flow, "point_valid": valid_t0}
+
+    def table_rows(self) -> list[tuple[str, int]]:
+        """(row, parameter count) in the order of the paper's table."""
+        rows = [("A", self.point_encoder.count_params()), ("B", 0)]
+        rows += [(b.name, b.count_params()) for stage in self.encoder_stages for b in stage]
+        rows += [(u.name, u.count_params()) for u in self.upsample_skips]
+        rows += [("V", self.conv_v.count_params()), ("W", 0), ("X", 0), ("Y", self.head_y.count_params()),
+                 ("Z", self.head_z.count_params())]
+        return rows
+
+    def get_config(self):
+        return {**super().get_config(), "num_pillars_x": self.num_pillars_x, "num_pillars_y": self.num_pillars_y,
+                "x_range_m": self.x_range_m, "y_range_m": self.y_range_m, "z_range_m": self.z_range_m,
+                "point_feature_dim": self.point_feature_dim, "encoder_widths": self.encoder_widths,
+                "encoder_depths": self.encoder_depths, "decoder_dims": self.decoder_dims,
+                "head_hidden_dim": self.head_hidden_dim}
+
+
+def build_model(cfg: ExperimentConfig) -> FastFlow3D:
+    """The model of a config, with its variables created (so count_params works before the first call)."""
+    g, m = cfg.grid, cfg.model
+    model = FastFlow3D(g.num_pillars_x, g.num_pillars_y, g.x_range_m, g.y_range_m, g.z_range_m,
+                       m.point_feature_dim, m.encoder_widths, m.encoder_depths, m.decoder_dims, m.head_hidden_dim)
+    model(dummy_inputs(1, 4))
+    return model
+
+
+def dummy_inputs(batch: int, num_points: int) -> dict[str, tf.Tensor]:
+    pts = tf.zeros([batch, num_points, 3])
+    feats = tf.zeros([batch, num_points, 2])
+    mask = tf.ones([batch, num_points], tf.bool)
+    return {"points_xyz_t0": pts, "point_features_t0": feats, "point_mask_t0": mask,
+            "points_xyz_tm1_in_t0": pts, "point_features_tm1": feats, "point_mask_tm1": mask}

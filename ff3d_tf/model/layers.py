@@ -1,0 +1,255 @@
+"""FastFlow3D building blocks (paper Sec. 4 and the architecture table in its appendix).
+
+Notation: B samples, N points per sample (padded), H x W pillars (rows along y, columns along x), C channels.
+Every layer takes plain constructor arguments, returns exactly them from `get_config`, and is registered for Keras
+serialisation.
+"""
+from __future__ import annotations
+
+import keras
+import tensorflow as tf
+
+_PKG = "ff3d_tf"
+
+
+@keras.saving.register_keras_serializable(package=_PKG)
+class Pillarize(keras.layers.Layer):
+    """Snap-To-Grid indices and the 8-D point encoding (table rows A/B inputs).
+
+    Args:
+      num_pillars_x, num_pillars_y: grid size W, H.
+      x_range_m, y_range_m, z_range_m: (min, max) extents in the vehicle frame at t0; points outside (or non-finite,
+        or masked) are invalid: they enter no pillar and get no prediction.
+    Call:
+      points_xyz [B,N,3] metres, point_features [B,N,2] (intensity, elongation), point_mask [B,N] bool.
+    Returns:
+      encoding [B,N,8] = (cx, cy, cz, dx, dy, dz, l0, l1), zero for invalid points;
+      pillar_ids [B,N] int32 flat ids b*H*W + row*W + col, invalid points -> B*H*W (the dummy segment);
+      point_valid [B,N] bool.
+    """
+
+    def __init__(self, num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, **kwargs):
+        super().__init__(**kwargs)
+        self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
+        self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
+        self._size_x = (self.x_range_m[1] - self.x_range_m[0]) / self.num_pillars_x
+        self._size_y = (self.y_range_m[1] - self.y_range_m[0]) / self.num_pillars_y
+
+    def call(self, points_xyz, point_features, point_mask):
+        x, y, z = points_xyz[..., 0], points_xyz[..., 1], points_xyz[..., 2]
+        # Indices are always computed as (x - min) * (1 / size): graph mode rewrites divisions into this form, so
+        # doing it explicitly keeps eager, graph and XLA on the same pillar for every point.
+        col_f = tf.floor((x - self.x_range_m[0]) * (1.0 / self._size_x))
+        row_f = tf.floor((y - self.y_range_m[0]) * (1.0 / self._size_y))
+        finite = tf.reduce_all(tf.math.is_finite(points_xyz), -1) & tf.reduce_all(
+            tf.math.is_finite(point_features), -1)
+        valid = (point_mask & finite & (col_f >= 0) & (col_f < self.num_pillars_x) & (row_f >= 0) &
+                 (row_f < self.num_pillars_y) & (z >= self.z_range_m[0]) & (z <= self.z_range_m[1]))
+        col = tf.cast(tf.where(valid, col_f, 0.0), tf.int32)
+        row = tf.cast(tf.where(valid, row_f, 0.0), tf.int32)
+        cx = self.x_range_m[0] + (tf.cast(col, points_xyz.dtype) + 0.5) * self._size_x
+        cy = self.y_range_m[0] + (tf.cast(row, points_xyz.dtype) + 0.5) * self._size_y
+        cz = tf.fill(tf.shape(z), tf.constant(0.5 * (self.z_range_m[0] + self.z_range_m[1]), points_xyz.dtype))
+        encoding = tf.concat([tf.stack([cx, cy, cz, x - cx, y - cy, z - cz], -1), point_features], -1)
+        encoding = tf.where(valid[..., None], encoding, tf.zeros_like(encoding))
+        batch = tf.shape(points_xyz)[0]
+        cells = self.num_pillars_x * self.num_pillars_y
+        sample = tf.range(batch, dtype=tf.int32)[:, None]
+        pillar_ids = tf.where(valid, sample * cells + row * self.num_pillars_x + col, batch * cells)
+        return encoding, pillar_ids, valid
+
+    def get_config(self):
+        return {**super().get_config(), "num_pillars_x": self.num_pillars_x, "num_pillars_y": self.num_pillars_y,
+                "x_range_m": self.x_range_m, "y_range_m": self.y_range_m, "z_range_m": self.z_range_m}
+
+
+@keras.saving.register_keras_serializable(package=_PKG)
+class MaskedBatchNorm(keras.layers.Layer):
+    """Batch normalisation over the valid points only (padding and invalid points do not move the statistics).
+
+    Four values per channel, as the table counts them: gamma, beta (trainable), moving mean, moving variance.
+    """
+
+    def __init__(self, momentum=0.99, epsilon=1e-3, **kwargs):
+        super().__init__(**kwargs)
+        self.momentum, self.epsilon = float(momentum), float(epsilon)
+
+    def build(self, input_shape):
+        c = int(input_shape[-1])
+        self.gamma = self.add_weight(name="gamma", shape=(c,), initializer="ones")
+        self.beta = self.add_weight(name="beta", shape=(c,), initializer="zeros")
+        self.moving_mean = self.add_weight(name="moving_mean", shape=(c,), initializer="zeros", trainable=False)
+        self.moving_variance = self.add_weight(name="moving_variance", shape=(c,), initializer="ones",
+                                               trainable=False)
+
+    def call(self, inputs, mask, training=False):
+        if training:
+            w = tf.cast(mask, inputs.dtype)[..., None]
+            count = tf.maximum(tf.reduce_sum(w), 1.0)
+            axes = list(range(len(inputs.shape) - 1))
+            mean = tf.reduce_sum(inputs * w, axes) / count
+            var = tf.reduce_sum(tf.square(inputs - mean) * w, axes) / count
+            self.moving_mean.assign(self.moving_mean * self.momentum + tf.cast(mean, self.moving_mean.dtype) *
+                                    (1.0 - self.momentum))
+            self.moving_variance.assign(self.moving_variance * self.momentum +
+                                        tf.cast(var, self.moving_variance.dtype) * (1.0 - self.momentum))
+        else:
+            mean = tf.cast(self.moving_mean, inputs.dtype)
+            var = tf.cast(self.moving_variance, inputs.dtype)
+        scale = tf.cast(self.gamma, inputs.dtype) * tf.math.rsqrt(var + self.epsilon)
+        return (inputs - mean) * scale + tf.cast(self.beta, inputs.dtype)
+
+    def get_config(self):
+        return {**super().get_config(), "momentum": self.momentum, "epsilon": self.epsilon}
+
+
+@keras.saving.register_keras_serializable(package=_PKG)
+class PointEncoder(keras.layers.Layer):
+    """Table row A, MLP to `units` with BN and ReLU: BN(8-D encoding) -> Linear(8 -> units, no bias) -> ReLU.
+
+    Reading of the row's 544 parameters: 8 x 64 kernel (no bias, BN follows the input) + 4 x 8 BN values = 544. The
+    BN normalises the 8-D encoding, whose channels differ in scale by two orders of magnitude (pillar centres up to
+    85 m, offsets < 0.2 m, intensity ~1); a bias would be redundant with BN's beta pushed through the kernel.
+    """
+
+    def __init__(self, units=64, **kwargs):
+        super().__init__(**kwargs)
+        self.units = int(units)
+        self.norm = MaskedBatchNorm(name="bn")
+        self.dense = keras.layers.Dense(self.units, use_bias=False, kernel_initializer="glorot_uniform",
+                                        name="linear")
+
+    def build(self, input_shape):
+        self.norm.build(input_shape)
+        self.dense.build(input_shape)
+
+    def call(self, encoding, point_valid, training=False):
+        h = tf.nn.relu(self.dense(self.norm(encoding, point_valid, training=training)))
+        return tf.where(point_valid[..., None], h, tf.zeros_like(h))
+
+    def get_config(self):
+        return {**super().get_config(), "units": self.units}
+
+
+@keras.saving.register_keras_serializable(package=_PKG)
+class ScatterToGrid(keras.layers.Layer):
+    """Table row B, Snap-To-Grid: sum (not max) of all point features of each pillar (dynamic voxelisation).
+
+    Call: point_features [..., C], pillar_ids [...] flat ids over (grid, row, col), num_grids G; the dummy id
+      G*H*W collects invalid points.
+    Returns: bev_features [G,H,W,C].
+    """
+
+    def __init__(self, num_pillars_x, num_pillars_y, **kwargs):
+        super().__init__(**kwargs)
+        self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
+
+    def call(self, point_features, pillar_ids, num_grids):
+        c = point_features.shape[-1]
+        cells = self.num_pillars_x * self.num_pillars_y
+        # [M, C] -> [G*H*W + 1, C]; the last (dummy) segment is dropped.
+        summed = tf.math.unsorted_segment_sum(tf.reshape(point_features, [-1, c]), tf.reshape(pillar_ids, [-1]),
+                                              num_grids * cells + 1)
+        return tf.reshape(summed[:-1], [num_grids, self.num_pillars_y, self.num_pillars_x, c])
+
+    def get_config(self):
+        return {**super().get_config(), "num_pillars_x": self.num_pillars_x, "num_pillars_y": self.num_pillars_y}
+
+
+@keras.saving.register_keras_serializable(package=_PKG)
+class ConvBlock(keras.layers.Layer):
+    """Table rows C-R: 3x3 convolution (no bias), BatchNorm, ReLU."""
+
+    def __init__(self, filters, strides=1, **kwargs):
+        super().__init__(**kwargs)
+        self.filters, self.strides = int(filters), int(strides)
+        self.conv = keras.layers.Conv2D(self.filters, 3, strides=self.strides, padding="same", use_bias=False,
+                                        kernel_initializer="glorot_uniform", name="conv")
+        self.bn = keras.layers.BatchNormalization(name="bn")
+
+    def build(self, input_shape):
+        self.conv.build(input_shape)
+        self.bn.build(self.conv.compute_output_shape(input_shape))
+
+    def call(self, x, training=False):
+        return tf.nn.relu(self.bn(self.conv(x), training=training))
+
+    def get_config(self):
+        return {**super().get_config(), "filters": self.filters, "strides": self.strides}
+
+
+@keras.saving.register_keras_serializable(package=_PKG)
+class UpsampleSkip(keras.layers.Layer):
+    """Table rows S, T, U, Upsample-Skip(alpha, beta, d, d_b); linear throughout (no BN, no nonlinearity).
+
+    U1 = 1x1 conv(alpha) -> d_b; U2 = bilinear x2 of U1; U3 = 1x1 conv(beta) -> d_b; U4 = concat(U2, U3);
+    U5 = 3x3 conv(U4) -> d; U6 = 3x3 conv(U5) -> d. All convolutions without bias.
+    """
+
+    def __init__(self, depth, bottleneck_depth, **kwargs):
+        super().__init__(**kwargs)
+        self.depth, self.bottleneck_depth = int(depth), int(bottleneck_depth)
+        conv = dict(use_bias=False, padding="same", kernel_initializer="glorot_uniform")
+        self.u1 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U1", **conv)
+        self.u2 = keras.layers.UpSampling2D(2, interpolation="bilinear", name="U2")
+        self.u3 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U3", **conv)
+        self.u5 = keras.layers.Conv2D(self.depth, 3, name="U5", **conv)
+        self.u6 = keras.layers.Conv2D(self.depth, 3, name="U6", **conv)
+
+    def build(self, input_shape):
+        alpha_shape, beta_shape = input_shape
+        self.u1.build(alpha_shape)
+        self.u3.build(beta_shape)
+        self.u5.build(tuple(beta_shape[:-1]) + (2 * self.bottleneck_depth,))
+        self.u6.build(tuple(beta_shape[:-1]) + (self.depth,))
+
+    def call(self, inputs):
+        alpha, beta = inputs
+        u4 = tf.concat([self.u2(self.u1(alpha)), self.u3(beta)], -1)
+        return self.u6(self.u5(u4))
+
+    def get_config(self):
+        return {**super().get_config(), "depth": self.depth, "bottleneck_depth": self.bottleneck_depth}
+
+
+@keras.saving.register_keras_serializable(package=_PKG)
+class UngridHead(keras.layers.Layer):
+    """Table rows W, X, Y: Ungrid (each t0 point takes its pillar's flow embedding), concatenation with the point
+    feature, and the linear layer Y.
+
+    Reading of row Y's 4,384 parameters: Linear(136 -> 32) with bias = 136 x 32 + 32, whose input is X (W's 64-d
+    cell embedding + A's 64-d point feature = the table's 128) plus the point's 8-D encoding (raw geometry beside the
+    learned features); no BN, no nonlinearity, as the table says. This is the reading that, with row A's, reproduces
+    the 5,233,571 total.
+
+    concat([w, a, e]) @ K = w @ K_w + a @ K_a + e @ K_e, so the grid part is projected to 32 channels on the grid first
+    and 32 (not 64) values are gathered per point: the same function with far less per-point memory traffic.
+    """
+
+    def __init__(self, units=32, **kwargs):
+        super().__init__(**kwargs)
+        self.units = int(units)
+
+    def build(self, input_shape):
+        grid_shape, point_shape, encoding_shape = input_shape[0], input_shape[1], input_shape[2]
+        self.grid_channels = int(grid_shape[-1])
+        self.point_channels = int(point_shape[-1])
+        fan_in = self.grid_channels + self.point_channels + int(encoding_shape[-1])
+        self.kernel = self.add_weight(name="kernel", shape=(fan_in, self.units), initializer="glorot_uniform")
+        self.bias = self.add_weight(name="bias", shape=(self.units,), initializer="zeros")
+
+    def call(self, inputs):
+        bev, point_features, encoding, pillar_ids = inputs  # [B,H,W,Cg], [B,N,Cp], [B,N,8], [B,N]
+        kernel = tf.cast(self.kernel, bev.dtype)
+        k_grid = kernel[: self.grid_channels]
+        k_point = kernel[self.grid_channels: self.grid_channels + self.point_channels]
+        k_enc = kernel[self.grid_channels + self.point_channels:]
+        projected = tf.reshape(tf.einsum("bhwc,cu->bhwu", bev, k_grid), [-1, self.units])  # [B*H*W, U]
+        cells = tf.shape(projected)[0]
+        safe_ids = tf.minimum(pillar_ids, cells - 1)  # dummy ids gather any cell; masked by the caller
+        gathered = tf.gather(projected, safe_ids)  # [B,N,U]
+        return (gathered + tf.einsum("bnc,cu->bnu", point_features, k_point) +
+                tf.einsum("bnc,cu->bnu", encoding, k_enc) + tf.cast(self.bias, bev.dtype))
+
+    def get_config(self):
+        return {**super().get_config(), "units": self.units}
