@@ -211,11 +211,15 @@ def make_scene(rng: np.random.Generator, ego_speed_mps: float) -> tuple[Road, li
 
 
 def _ego_poses(road: Road, times, ego_speed: float) -> np.ndarray:
-    """Vehicle -> world [T, 4, 4] of the ego in the right lane, with a small roll/pitch sway."""
+    """Vehicle -> world [T, 4, 4] of the ego in the right lane.
+
+    Yaw only: WOD boxes are yaw-only in the vehicle frame, so a pitching ego would tilt every labelled box by the
+    ego's pitch and the labels could not hold their points exactly. The rotation code paths are still exercised by
+    the rotated lidar extrinsics and by the per-pixel poses (yaw changes within a spin on curves)."""
     times = np.atleast_1d(np.asarray(times, np.float64))
     x, y, th = road.pose(ego_speed * times, -1.75)
     m = np.tile(np.eye(4), (times.size, 1, 1))
-    m[:, :3, :3] = wod_format.rotation_from_rpy(0.01 * np.sin(3.1 * times), 0.008 * np.sin(2.3 * times + 1.0), th)
+    m[:, :3, :3] = wod_format.rotation_from_rpy(np.zeros_like(th), np.zeros_like(th), th)
     m[:, 0, 3], m[:, 1, 3] = x, y
     return m
 

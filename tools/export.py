@@ -1,0 +1,20 @@
+"""Export a checkpoint as a SavedModel for serving: python tools/export.py --config C --checkpoint M --out DIR"""
+import _common
+
+from ff3d_tf.export import export_saved_model
+from ff3d_tf.training import restore_model
+
+
+def main():
+    p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--out", required=True)
+    args = p.parse_args()
+    cfg = _common.load(args)
+    model = restore_model(cfg, args.checkpoint)
+    export_saved_model(model, args.out, cfg.data.point_bucket_base, cfg.model.jit_compile)
+    print(f"wrote SavedModel {args.out} (signature serving_default)")
+
+
+if __name__ == "__main__":
+    main()

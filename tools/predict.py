@@ -1,0 +1,86 @@
+"""Run a SavedModel or checkpoint over a WOD TFRecord (or an Argoverse 2 log): per-frame flows (.npz) and BEV PNGs.
+
+python tools/predict.py --config C --checkpoint M --input SEGMENT.tfrecord --out_dir O [--png_every 10]
+python tools/predict.py --config C --checkpoint M --av2_log ../shared/data/av2_sample_log --out_dir O
+"""
+import os
+
+import _common
+import numpy as np
+import tensorflow as tf
+
+from ff3d_tf import viz
+from ff3d_tf.data import pairs, waymo
+from ff3d_tf.evaluation import raw_tm1_points
+
+
+def _examples(args, cfg):
+    if args.av2_log:
+        from ff3d_tf.data import argoverse2
+        yield argoverse2.model_example(args.av2_log, cfg)
+        return
+    first = next(waymo.iterate_records(args.input))[1]
+    try:
+        waymo.decode_frame(first, laser_names=cfg.data.laser_names, source=args.input)
+        inference_only = False
+    except waymo.MissingFlowLabelsError:
+        inference_only = True
+        print(f"{args.input}: no flow labels; predicting without ground truth", flush=True)
+    for ex in pairs.pair_dataset([args.input], cfg, inference_only=inference_only):
+        yield {k: v.numpy() for k, v in ex.items()}
+
+
+def main():
+    p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
+    p.add_argument("--checkpoint", required=True, help="SavedModel directory, model_dir or checkpoint prefix")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--input", help="one WOD segment TFRecord")
+    src.add_argument("--av2_log", help="an Argoverse 2 log directory (two consecutive sweeps)")
+    p.add_argument("--out_dir", required=True)
+    p.add_argument("--png_every", type=int, default=10, help="a BEV PNG every this many frames (first included)")
+    args = p.parse_args()
+    cfg = _common.load(args)
+    os.makedirs(args.out_dir, exist_ok=True)
+    if os.path.exists(os.path.join(args.checkpoint, "saved_model.pb")):
+        from ff3d_tf.export import SavedModelPredictor
+        saved = SavedModelPredictor(args.checkpoint)
+
+        def run(ex):
+            pts0 = np.concatenate([ex["points_xyz_t0"], ex["point_features_t0"]], -1)
+            out = saved(raw_tm1_points(ex), pts0, ex["pose_tm1"], ex["pose_t0"])
+            return out["flow_mps"].numpy(), out["point_valid"].numpy()
+    else:
+        from ff3d_tf.training import model_inputs, predict_function, restore_model
+        model = restore_model(cfg, args.checkpoint)
+        predict = predict_function(model, cfg.model.jit_compile)
+
+        def run(ex):
+            batch = next(iter(pairs.batch_examples(tf.data.Dataset.from_tensors(ex), 1,
+                                                   cfg.data.point_bucket_base)))
+            out = predict(model_inputs(batch))
+            n = int(ex["num_points_t0"])
+            return out["flow_mps"][0, :n].numpy(), out["point_valid"][0, :n].numpy()
+
+    n = 0
+    for i, ex in enumerate(_examples(args, cfg)):
+        flow, valid = run(ex)
+        has_labels = bool(np.any(ex["class_id_t0"] >= 0))
+        name = f"frame_{i:04d}"
+        np.savez_compressed(os.path.join(args.out_dir, name + ".npz"), points_xyz_t0=ex["points_xyz_t0"],
+                            flow_mps_pred=flow, point_valid=valid, flow_mps_true=ex["flow_mps_t0"],
+                            class_id_t0=ex["class_id_t0"])
+        if i % args.png_every == 0:
+            panels = {"prediction": np.where(valid[:, None], flow, 0.0)}
+            if has_labels:
+                panels["ground truth"] = np.where((ex["class_id_t0"] >= 0)[:, None], ex["flow_mps_t0"], 0.0)
+            png = viz.bev_flow_png(os.path.join(args.out_dir, name + "_bev.png"), ex["points_xyz_t0"], panels,
+                                   title=f"{args.input or args.av2_log} pair {i}: colour = direction, "
+                                         f"brightness = speed")
+            print(f"wrote {png}", flush=True)
+        n += 1
+        print(f"predicted pair {i}: {int(valid.sum())}/{len(valid)} points with a prediction", flush=True)
+    print(f"wrote {n} frames to {args.out_dir}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,24 @@
+"""Train FastFlow3D: python tools/train.py --config configs/synthetic_cpu.yaml --data_dir D --model_dir M"""
+import _common
+
+from ff3d_tf.data.pairs import list_segment_files
+from ff3d_tf.training import Trainer
+
+
+def main():
+    p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
+    p.add_argument("--data_dir", required=True, help="directory (or glob) of training segment TFRecords")
+    p.add_argument("--val_dir", default=None, help="validation records for the periodic metric subset")
+    p.add_argument("--model_dir", required=True, help="checkpoints, TensorBoard logs, resolved config; resumes")
+    args = p.parse_args()
+    cfg = _common.load(args)
+    train_files = list_segment_files(args.data_dir)
+    if cfg.data.max_training_segments:
+        train_files = train_files[: cfg.data.max_training_segments]
+    val_files = list_segment_files(args.val_dir) if args.val_dir else []
+    print(f"training on {len(train_files)} segment files; model_dir {args.model_dir}", flush=True)
+    Trainer(cfg, args.model_dir, train_files, val_files, log_fn=lambda s: print(s, flush=True)).train()
+
+
+if __name__ == "__main__":
+    main()
