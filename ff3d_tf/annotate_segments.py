@@ -1,0 +1,159 @@
+"""Bootstrap scene-flow labels for whole WOD segments (paper Sec. 3), as an Apache Beam pipeline.
+
+One Beam element per segment file: its frames are read in order, every selected lidar/return gets flow from the
+frame's `laser_labels` and the previous frame's (`ff3d_tf.annotation.bootstrap_flow`), and the frames are written
+again with `range_image_flow_compressed` filled in the release's format ([H,W,4]: vx, vy, vz in m/s, class), so the
+reader and training take them unchanged. Points in no-label zones (range image channel 3 > 0) get class -1; pixels
+without a return hold zeros and class -1. The first frame of a segment has no t-1 boxes: its object points get class -1.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+import numpy as np
+
+from ff3d_tf import schema
+from ff3d_tf.annotation import boxes_from_wod_labels, bootstrap_flow
+from ff3d_tf.data import waymo
+from ff3d_tf.data.wod_format import encode_matrix
+
+_LOG = logging.getLogger(__name__)
+COUNT_KEYS = ("frames", "points", "invalid_points", "background", "vehicle", "pedestrian", "sign", "cyclist",
+              "no_label_zone_points")
+
+
+def annotate_frame(frame, record: bytes, prev: tuple | None, laser_names=schema.ALL_LASERS, returns=(1, 2),
+                   source: str = "<bytes>", record_index: int = 0) -> tuple[bytes, dict, tuple]:
+    """Fills `range_image_flow_compressed` of one parsed Frame; returns (serialized frame, counts, state for next)."""
+    decoded = waymo.decode_frame(record, laser_names=laser_names, returns=returns, inference_only=True,
+                                 with_pixels=True, source=source, record_index=record_index)
+    boxes = boxes_from_wod_labels(frame.laser_labels)
+    if prev is None:
+        # No t-1 frame: object points are unlabelled (class -1); background stays 0.
+        flow, cls = bootstrap_flow(decoded["points_xyz"], boxes, {"track_id": np.zeros(0, str)}, decoded["pose"],
+                                   decoded["pose"], 0.1)
+    else:
+        prev_boxes, prev_pose, prev_ts = prev
+        dt_s = (decoded["timestamp_micros"] - prev_ts) * 1e-6
+        flow, cls = bootstrap_flow(decoded["points_xyz"], boxes, prev_boxes, decoded["pose"], prev_pose, dt_s)
+    nlz = decoded["in_no_label_zone"]
+    cls = np.where(nlz, schema.CLASS_NO_LABEL, cls)
+    flow = np.where(nlz[:, None], 0.0, flow)
+    counts = dict.fromkeys(COUNT_KEYS, 0)
+    counts["frames"], counts["points"] = 1, len(cls)
+    counts["invalid_points"] = int(np.sum(cls == schema.CLASS_NO_LABEL))
+    counts["no_label_zone_points"] = int(nlz.sum())
+    for c, name in schema.CLASS_NAMES.items():
+        counts[name] = int(np.sum(cls == c))
+    for laser in frame.lasers:
+        if laser.name not in laser_names:
+            continue
+        for ret in returns:
+            ri = laser.ri_return1 if ret == 1 else laser.ri_return2
+            if not ri.range_image_compressed:
+                continue
+            sel = (decoded["laser_name"] == laser.name) & (decoded["return_index"] == ret)
+            shape = _range_image_hw(ri)
+            image = np.zeros(shape + (4,), np.float32)
+            image[..., 3] = schema.CLASS_NO_LABEL
+            rc = decoded["pixel_row_col"][sel]
+            image[rc[:, 0], rc[:, 1], :3] = flow[sel]
+            image[rc[:, 0], rc[:, 1], 3] = cls[sel]
+            ri.range_image_flow_compressed = encode_matrix(image)
+    return frame.SerializeToString(), counts, (boxes, decoded["pose"], decoded["timestamp_micros"])
+
+
+def _range_image_hw(ri) -> tuple[int, int]:
+    import zlib
+
+    from waymo_open_dataset import dataset_pb2
+    m = dataset_pb2.MatrixFloat.FromString(zlib.decompress(ri.range_image_compressed))
+    return int(m.shape.dims[0]), int(m.shape.dims[1])
+
+
+def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS, returns=(1, 2),
+                     skip_bad_records: bool = False) -> dict:
+    """Annotates one segment file into `out_path` (written atomically; an existing output is kept: resumable)."""
+    import tensorflow as tf
+    from waymo_open_dataset import dataset_pb2
+
+    totals = dict.fromkeys(COUNT_KEYS, 0)
+    totals["skipped_records"] = 0
+    if os.path.exists(out_path):
+        _LOG.info("exists, skipped: %s", out_path)
+        totals["already_done"] = 1
+        return totals
+    os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
+    tmp = out_path + ".partial"
+    prev = None
+    t0 = time.time()
+    stats = waymo.ReadStats()
+    with tf.io.TFRecordWriter(tmp) as writer:
+        for index, record in waymo.iterate_records(in_path, stats, skip_bad_records):
+            try:
+                frame = dataset_pb2.Frame.FromString(record)
+                data, counts, prev = annotate_frame(frame, record, prev, laser_names, returns, in_path, index)
+            except Exception as err:  # noqa: BLE001 - reported with file/record, or re-raised
+                if not skip_bad_records:
+                    raise
+                _LOG.warning("%s record %d skipped: %s", in_path, index, err)
+                totals["skipped_records"] += 1
+                prev = None  # the next frame has no valid t-1
+                continue
+            writer.write(data)
+            for k, v in counts.items():
+                totals[k] += v
+            if (index + 1) % 10 == 0:
+                _LOG.info("%s: %d frames, %.1f frames/s", os.path.basename(in_path), index + 1,
+                          (index + 1) / (time.time() - t0))
+    totals["skipped_records"] += stats.skipped
+    os.replace(tmp, out_path)
+    totals["seconds"] = time.time() - t0
+    return totals
+
+
+def run_pipeline(input_files: list[str], out_dir: str, beam_args: list[str] | None = None,
+                 laser_names=schema.ALL_LASERS, returns=(1, 2), skip_bad_records: bool = False) -> dict:
+    """Beam pipeline (DirectRunner unless the standard Beam options say otherwise); returns the summed counts."""
+    import apache_beam as beam
+    from apache_beam.options.pipeline_options import PipelineOptions
+
+    result_path = os.path.join(out_dir, "annotation_counts.json")
+    os.makedirs(out_dir, exist_ok=True)
+
+    class AnnotateSegment(beam.DoFn):
+        def process(self, path):
+            out_path = os.path.join(out_dir, os.path.basename(path))
+            counts = annotate_segment(path, out_path, laser_names, returns, skip_bad_records)
+            for k, v in counts.items():
+                beam.metrics.Metrics.counter("annotate_flow", k).inc(int(v))
+            _LOG.info("segment done: %s %s", out_path, counts)
+            yield counts
+
+    def merge(all_counts):
+        out = {}
+        for c in all_counts:
+            for k, v in c.items():
+                out[k] = out.get(k, 0) + v
+        return out
+
+    options = PipelineOptions(beam_args or [])
+    with beam.Pipeline(options=options) as p:
+        (p | "Segments" >> beam.Create(list(input_files))
+           | "Reshuffle" >> beam.Reshuffle()
+           | "Annotate" >> beam.ParDo(AnnotateSegment())
+           | "Sum" >> beam.combiners.ToList()
+           | "Merge" >> beam.Map(merge)
+           | "Write" >> beam.Map(_write_json, result_path))
+    import json
+    with open(result_path) as f:
+        return json.load(f)
+
+
+def _write_json(obj, path):
+    import json
+    with open(path, "w") as f:
+        json.dump(obj, f, indent=1, sort_keys=True)
+    return path

@@ -1,0 +1,43 @@
+"""Test setup: two logical CPU devices (for MirroredStrategy tests), a tiny synthetic WOD segment per session."""
+import os
+import sys
+
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+import pytest  # noqa: E402
+import tensorflow as tf  # noqa: E402
+
+_cpus = tf.config.list_physical_devices("CPU")
+tf.config.set_logical_device_configuration(_cpus[0], [tf.config.LogicalDeviceConfiguration()] * 2)
+
+SHARED = os.path.join(os.path.dirname(ROOT), "shared")
+AV2_LOG = os.path.join(SHARED, "data", "av2_sample_log")
+TINY_SCALE = 0.12  # range images ~8 x 318 (TOP) and 24 x 72 (short-range)
+
+
+@pytest.fixture(scope="session")
+def tiny_segment(tmp_path_factory):
+    """Path of a 4-frame synthetic segment with small range images (all five lidars)."""
+    from ff3d_tf.data import synthetic
+    path = str(tmp_path_factory.mktemp("seg") / "segment-tiny.tfrecord")
+    synthetic.write_segment(path, synthetic.SegmentSpec(seed=5, num_frames=4, lidar_scale=TINY_SCALE))
+    return path
+
+
+@pytest.fixture(scope="session")
+def tiny_records(tiny_segment):
+    from ff3d_tf.data import waymo
+    return [r for _, r in waymo.iterate_records(tiny_segment)]
+
+
+@pytest.fixture(scope="session")
+def tiny_config():
+    from ff3d_tf.config import load_config
+    return load_config(None, ["grid.num_pillars_x=32", "grid.num_pillars_y=32", "grid.x_range_m=[-40, 40]",
+                              "grid.y_range_m=[-40, 40]", "model.point_feature_dim=16",
+                              "model.encoder_widths=[16, 24, 32]", "model.encoder_depths=[2, 2, 2]",
+                              "model.decoder_dims=[[24, 24], [24, 16], [16, 16]]", "model.head_hidden_dim=8",
+                              "data.point_bucket_base=1024", "train.global_batch_size=2",
+                              "train.learning_rate=1e-3", "data.shuffle_buffer=4"])

@@ -1,0 +1,43 @@
+"""Frame pairing, ego-motion compensation and bucketed batching."""
+import numpy as np
+import tensorflow as tf
+
+from ff3d_tf.data import pairs, waymo
+
+
+def test_pairs_move_previous_cloud_into_t0_frame(tiny_segment, tiny_records, tiny_config):
+    cfg = tiny_config.__class__(grid=tiny_config.grid, data=tiny_config.data.__class__(crop_to_grid=False),
+                                model=tiny_config.model, train=tiny_config.train)
+    examples = list(pairs.pair_dataset([tiny_segment], cfg))
+    assert len(examples) == len(tiny_records) - 1
+    f0 = waymo.decode_frame(tiny_records[0])
+    f1 = waymo.decode_frame(tiny_records[1])
+    ex = {k: v.numpy() for k, v in examples[0].items()}
+    t = np.linalg.inv(f1["pose"]) @ f0["pose"]  # T = inv(pose_t0) @ pose_tm1
+    expected = f0["points_xyz"].astype(np.float64) @ t[:3, :3].T + t[:3, 3]
+    np.testing.assert_allclose(ex["points_xyz_tm1_in_t0"], expected, atol=1e-4)
+    np.testing.assert_array_equal(ex["points_xyz_t0"], f1["points_xyz"])
+    np.testing.assert_array_equal(ex["class_id_t0"], f1["class_id"])
+    np.testing.assert_array_equal(ex["pose_tm1"], f0["pose"])
+    # Ego moved: the raw t-1 cloud differs from the compensated one.
+    assert np.abs(t[:3, 3]).max() > 0.1
+
+
+def test_large_gaps_are_skipped(tiny_records, tiny_config, tmp_path):
+    path = str(tmp_path / "gap.tfrecord")
+    with tf.io.TFRecordWriter(path) as w:
+        for i in (0, 1, 3):  # 1 -> 3 is a 0.2 s gap
+            w.write(tiny_records[i])
+    assert len(list(pairs.pair_dataset([path], tiny_config))) == 1
+
+
+def test_bucketed_batches(tiny_segment, tiny_config):
+    ds = pairs.batch_examples(pairs.pair_dataset([tiny_segment], tiny_config), 2, 1024)
+    batch = next(iter(ds))
+    n = int(batch["points_xyz_t0"].shape[1])
+    assert n == pairs.bucket_size(int(tf.reduce_max(batch["num_points_t0"])), 1024)
+    mask = batch["point_mask_t0"].numpy()
+    assert mask.sum() == int(tf.reduce_sum(batch["num_points_t0"]))
+    assert np.all(batch["class_id_t0"].numpy()[~mask] == -1)
+    assert pairs.bucket_size(1025, 1024) == 1536 and pairs.bucket_size(1, 1024) == 1024
+    assert pairs.bucket_size(3000, 1024) == 3072

@@ -1,0 +1,115 @@
+"""FastFlow3D: paper parameter counts, shapes, serialisation, pillarization by hand, equivariance, masking, XLA."""
+import keras
+import numpy as np
+import pytest
+import tensorflow as tf
+
+from ff3d_tf.config import load_config
+from ff3d_tf.model import FastFlow3D, build_model
+from ff3d_tf.model.layers import Pillarize
+
+PAPER_ROWS = {"A": 544, "B": 0, "C": 37120, "D": 37120, "E": 37120, "F": 37120, "G": 74240, "H": 147968,
+              "I": 147968, "J": 147968, "K": 147968, "L": 147968, "M": 295936, "N": 590848, "O": 590848,
+              "P": 590848, "Q": 590848, "R": 590848, "S": 540672, "T": 311296, "U": 126976, "V": 36864, "W": 0,
+              "X": 0, "Y": 4384, "Z": 99}
+
+
+def test_paper_parameter_counts():
+    model = build_model(load_config("configs/fastflow3d_waymo.yaml"))
+    assert model.count_params() == 5_233_571
+    assert dict(model.table_rows()) == PAPER_ROWS
+
+
+def _inputs(rng, batch, n0, n1, extent=40.0):
+    def cloud(n):
+        xyz = rng.uniform(-extent, extent, (batch, n, 3)).astype(np.float32)
+        xyz[..., 2] = rng.uniform(-2.5, 2.5, (batch, n))
+        return xyz, rng.uniform(0, 1, (batch, n, 2)).astype(np.float32)
+    p0, f0 = cloud(n0)
+    p1, f1 = cloud(n1)
+    return {"points_xyz_t0": tf.constant(p0), "point_features_t0": tf.constant(f0),
+            "point_mask_t0": tf.ones([batch, n0], tf.bool), "points_xyz_tm1_in_t0": tf.constant(p1),
+            "point_features_tm1": tf.constant(f1), "point_mask_tm1": tf.ones([batch, n1], tf.bool)}
+
+
+def test_shapes_and_config_round_trip(tiny_config):
+    model = build_model(tiny_config)
+    inputs = _inputs(np.random.default_rng(0), 2, 300, 250)
+    out = model(inputs)
+    assert out["flow_mps"].shape == (2, 300, 3) and out["point_valid"].shape == (2, 300)
+    clone = FastFlow3D.from_config(model.get_config())
+    clone(inputs)
+    clone.set_weights(model.get_weights())
+    np.testing.assert_allclose(clone(inputs)["flow_mps"], out["flow_mps"], atol=1e-6)
+    restored = keras.saving.deserialize_keras_object(keras.saving.serialize_keras_object(model))
+    assert restored.get_config() == model.get_config()
+
+
+def test_pillarization_by_hand():
+    # Grid 4 x 4 over x, y in [-2, 2) (1 m pillars), z in [-1, 1].
+    layer = Pillarize(4, 4, (-2.0, 2.0), (-2.0, 2.0), (-1.0, 1.0))
+    pts = tf.constant([[[0.25, -1.5, 0.5],    # col floor(2.25)=2, row floor(0.5)=0 -> id 0*16 + 0*4 + 2 = 2
+                        [-2.0, 1.99, -1.0],   # col 0, row 3 -> 12; z on the lower bound is valid
+                        [2.0, 0.0, 0.0],      # x == max: outside
+                        [0.0, 0.0, 1.5]]], tf.float32)  # z outside
+    feats = tf.constant([[[0.3, 0.1]] * 4], tf.float32)
+    enc, ids, valid = layer(pts, feats, tf.ones([1, 4], tf.bool))
+    assert valid.numpy().tolist() == [[True, True, False, False]]
+    assert ids.numpy().tolist() == [[2, 12, 16, 16]]  # invalid -> dummy id B*H*W = 16
+    # Point 0: centre (0.5, -1.5, 0), offset (-0.25, 0, 0.5), features (0.3, 0.1).
+    np.testing.assert_allclose(enc.numpy()[0, 0], [0.5, -1.5, 0.0, -0.25, 0.0, 0.5, 0.3, 0.1], atol=1e-6)
+    np.testing.assert_array_equal(enc.numpy()[0, 2], np.zeros(8))
+
+
+def test_permuting_points_permutes_outputs(tiny_config):
+    model = build_model(tiny_config)
+    inputs = _inputs(np.random.default_rng(1), 1, 200, 180)
+    perm = np.random.default_rng(2).permutation(200)
+    perm1 = np.random.default_rng(3).permutation(180)
+    permuted = dict(inputs)
+    for k in ("points_xyz_t0", "point_features_t0", "point_mask_t0"):
+        permuted[k] = tf.gather(inputs[k], perm, axis=1)
+    for k in ("points_xyz_tm1_in_t0", "point_features_tm1", "point_mask_tm1"):
+        permuted[k] = tf.gather(inputs[k], perm1, axis=1)
+    a, b = model(inputs)["flow_mps"].numpy(), model(permuted)["flow_mps"].numpy()
+    np.testing.assert_allclose(b[0], a[0][perm], atol=1e-5)
+
+
+def test_invalid_points_are_masked_and_do_not_change_others(tiny_config):
+    model = build_model(tiny_config)
+    inputs = _inputs(np.random.default_rng(4), 1, 100, 100)
+    base = model(inputs)
+    xyz = inputs["points_xyz_t0"].numpy().copy()
+    xyz[0, :5] = [[1e4, 0, 0], [0, 0, 50.0], [np.nan, 0, 0], [0, np.inf, 0], [0, 0, 0]]
+    mask = np.ones([1, 100], bool)
+    mask[0, 4] = False  # padding
+    changed = dict(inputs, points_xyz_t0=tf.constant(xyz), point_mask_t0=tf.constant(mask))
+    out = model(changed)
+    assert not out["point_valid"].numpy()[0, :5].any() and out["point_valid"].numpy()[0, 5:].all()
+    np.testing.assert_array_equal(out["flow_mps"].numpy()[0, :5], np.zeros((5, 3)))
+    assert np.isfinite(out["flow_mps"].numpy()).all()
+    # The other points only lose the removed points' pillar contributions; with them removed from the input
+    # entirely, predictions match exactly.
+    dropped = {k: (v[:, 5:] if k.endswith("_t0") and k != "points_xyz_tm1_in_t0" else v) for k, v in changed.items()}
+    np.testing.assert_allclose(model(dropped)["flow_mps"].numpy()[0], out["flow_mps"].numpy()[0, 5:], atol=1e-5)
+    del base
+
+
+def test_xla_matches_eager(tiny_config):
+    model = build_model(tiny_config)
+    inputs = _inputs(np.random.default_rng(5), 2, 400, 300)
+    # Untrained outputs reach ~15 m/s, where float32 spacing alone is ~1e-6; scale the last layer so that outputs
+    # are of a real flow's size (~1 m/s) and 1e-5 is a meaningful bound.
+    model.head_z.kernel.assign(model.head_z.kernel * 0.1)
+    eager = model(inputs)["flow_mps"].numpy()
+    xla = tf.function(lambda x: model(x), jit_compile=True)(inputs)["flow_mps"].numpy()
+    graph = tf.function(lambda x: model(x))(inputs)["flow_mps"].numpy()
+    np.testing.assert_allclose(xla, eager, atol=1e-5)
+    np.testing.assert_allclose(graph, eager, atol=1e-5)
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_tiny_and_empty_clouds(tiny_config, n):
+    model = build_model(tiny_config)
+    out = model(_inputs(np.random.default_rng(6), 1, n, n))
+    assert out["flow_mps"].shape == (1, n, 3)

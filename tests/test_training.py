@@ -1,0 +1,59 @@
+"""Training loop: a step changes weights, resume equals uninterrupted, non-finite steps never reach the weights."""
+import dataclasses
+
+import numpy as np
+import pytest
+import tensorflow as tf
+
+from ff3d_tf.training import NonFiniteLossError, Trainer
+
+
+def _cfg(tiny_config, **train):
+    return dataclasses.replace(tiny_config, train=dataclasses.replace(
+        tiny_config.train, log_every_steps=1, checkpoint_every_steps=100, eval_every_steps=0, **train))
+
+
+def _weights(trainer):
+    return [v.numpy().copy() for v in trainer.model.trainable_variables]
+
+
+def test_two_steps_change_weights_and_write_config(tiny_segment, tiny_config, tmp_path):
+    t = Trainer(_cfg(tiny_config), str(tmp_path / "m"), [tiny_segment], log_fn=lambda s: None)
+    before = _weights(t)
+    out = t.train(2)
+    assert out["step"] == 2 and np.isfinite(out["loss"])
+    assert any(not np.allclose(a, b) for a, b in zip(before, _weights(t)))
+    assert (tmp_path / "m" / "config.yaml").exists()
+
+
+def test_resume_equals_uninterrupted(tiny_segment, tiny_config, tmp_path):
+    cfg = _cfg(tiny_config, seed=3)
+    one = Trainer(cfg, str(tmp_path / "a"), [tiny_segment], log_fn=lambda s: None)
+    one.train(4)
+    first = Trainer(cfg, str(tmp_path / "b"), [tiny_segment], log_fn=lambda s: None)
+    first.train(2)
+    resumed = Trainer(cfg, str(tmp_path / "b"), [tiny_segment], log_fn=lambda s: None)
+    assert int(resumed.step.numpy()) == 0
+    resumed.train(4)
+    assert int(resumed.step.numpy()) == 4
+    for a, b in zip(_weights(one), _weights(resumed)):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    for a, b in zip(one.optimizer.variables, resumed.optimizer.variables):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+
+
+def test_nonfinite_steps_are_skipped_then_stop(tiny_segment, tiny_config, tmp_path):
+    cfg = _cfg(tiny_config, max_nonfinite_steps_in_row=2)
+    t = Trainer(cfg, str(tmp_path / "n"), [tiny_segment], log_fn=lambda s: None)
+    before = _weights(t)
+    original = t._grad_fn
+
+    def poisoned(batch):
+        loss, grads = original(batch)
+        return loss * np.nan, grads
+    t._grad_fn = poisoned
+    with pytest.raises(NonFiniteLossError, match="non-finite steps in a row"):
+        t.train(5)
+    assert int(t.nonfinite_total.numpy()) == 2
+    for a, b in zip(before, _weights(t)):
+        np.testing.assert_array_equal(a, b)
