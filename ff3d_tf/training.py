@@ -99,31 +99,33 @@ class Trainer:
     def _replica_step(self, batch):
         loss, grads = self._grad_fn(batch)
         ctx = tf.distribute.get_replica_context()
+        # Sum over replicas here, so every replica holds the global loss and gradients.
+        return ctx.all_reduce(tf.distribute.ReduceOp.SUM, loss), ctx.all_reduce(tf.distribute.ReduceOp.SUM, grads)
+
+    @tf.function
+    def _train_step(self, iterator):
+        loss, grads = self.strategy.run(self._replica_step, args=(next(iterator),))
+        loss = self.strategy.experimental_local_results(loss)[0]
+        grads = [self.strategy.experimental_local_results(g)[0] for g in grads]
         grad_norm = tf.linalg.global_norm(grads)
-        total = ctx.all_reduce(tf.distribute.ReduceOp.SUM, tf.stack([loss, grad_norm]))
-        finite = tf.reduce_all(tf.math.is_finite(total))  # the same decision on every replica
+        finite = tf.math.is_finite(loss) & tf.math.is_finite(grad_norm)
 
         def apply():
             g = grads
             if self.cfg.train.grad_clip_norm is not None:
-                g, _ = tf.clip_by_global_norm(g, self.cfg.train.grad_clip_norm, use_norm=total[1])
+                g, _ = tf.clip_by_global_norm(g, self.cfg.train.grad_clip_norm, use_norm=grad_norm)
+            # Cross-replica context: the optimizer updates every mirrored copy with the same global gradients.
             self.optimizer.apply_gradients(zip(g, self.model.trainable_variables))
+            self.nonfinite_in_row.assign(0)
             return tf.constant(True)
 
-        applied = tf.cond(finite, apply, lambda: tf.constant(False))
-        return total[0], applied
-
-    @tf.function
-    def _train_step(self, iterator):
-        loss, applied = self.strategy.run(self._replica_step, args=(next(iterator),))
-        loss = self.strategy.reduce(tf.distribute.ReduceOp.SUM, loss, axis=None) / self.strategy.num_replicas_in_sync
-        applied = self.strategy.experimental_local_results(applied)[0]
-        self.step.assign_add(1)
-        if applied:
-            self.nonfinite_in_row.assign(0)
-        else:
+        def skip():
             self.nonfinite_total.assign_add(1)
             self.nonfinite_in_row.assign_add(1)
+            return tf.constant(False)
+
+        tf.cond(finite, apply, skip)
+        self.step.assign_add(1)
         return loss
 
     # -- loop --------------------------------------------------------------------------------------------------
@@ -154,7 +156,9 @@ class Trainer:
             per_replica = ctx.get_per_replica_batch_size(global_batch)
             return training_dataset(self.train_files, cfg, per_replica,
                                     shard=(ctx.num_input_pipelines, ctx.input_pipeline_id)
-                                    if ctx.num_input_pipelines > 1 else None, skip_batches=start_step)
+                                    if ctx.num_input_pipelines > 1 else None,
+                                    # each step takes one batch per replica fed by this pipeline
+                                    skip_batches=start_step * ctx.num_replicas_in_sync // ctx.num_input_pipelines)
 
         dist_ds = self.strategy.distribute_datasets_from_function(dataset_fn)
         iterator = iter(dist_ds)

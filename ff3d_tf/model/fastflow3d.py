@@ -41,11 +41,20 @@ class FastFlow3D(keras.Model):
         self.point_encoder = L.PointEncoder(self.point_feature_dim, name="A")
         self.scatter = L.ScatterToGrid(num_pillars_x, num_pillars_y, name="B")
         letters = iter(string.ascii_uppercase[2:] + "".join(f"E{i}" for i in range(100)))
+        # Every layer is also a plain attribute (conv_C, ..., upsample_S, ...): TF checkpoints track attributes, not
+        # the Keras-tracked lists below, so optimizer state and weights round-trip through tf.train.Checkpoint.
         self.encoder_stages = []
         for width, depth in zip(self.encoder_widths, self.encoder_depths):
-            self.encoder_stages.append([L.ConvBlock(width, strides=2 if i == 0 else 1, name=next(letters))
-                                        for i in range(depth)])
-        self.upsample_skips = [L.UpsampleSkip(d, db, name=n) for (d, db), n in zip(self.decoder_dims, "STU")]
+            stage = []
+            for i in range(depth):
+                block = L.ConvBlock(width, strides=2 if i == 0 else 1, name=next(letters))
+                setattr(self, f"conv_{block.name}", block)
+                stage.append(block)
+            self.encoder_stages.append(stage)
+        self.upsample_skips = []
+        for (d, db), n in zip(self.decoder_dims, "STU"):
+            setattr(self, f"upsample_{n}", L.UpsampleSkip(d, db, name=n))
+            self.upsample_skips.append(getattr(self, f"upsample_{n}"))
         self.conv_v = keras.layers.Conv2D(self.decoder_dims[-1][0], 3, padding="same", use_bias=False,
                                           kernel_initializer="glorot_uniform", name="V")
         self.head_y = L.UngridHead(self.head_hidden_dim, name="Y")
