@@ -7,7 +7,6 @@ import json
 import time
 
 import _common  # noqa: F401
-import numpy as np
 import tensorflow as tf
 
 from ff3d_tf.data import waymo
@@ -54,7 +53,6 @@ def main():
     with open(args.out, "w") as f:
         json.dump(result, f, indent=1)
     print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in result.items()}))
-    del np
 
 
 if __name__ == "__main__":
