@@ -69,6 +69,7 @@ class Trainer:
         self.strategy = strategy or make_strategy()
         self.log = log_fn
         self._stop_signal = None
+        keras.utils.set_random_seed(cfg.train.seed)  # same initial weights for the same seed (reproducible runs)
         with self.strategy.scope():
             self.model = build_model(cfg)
             self.optimizer = keras.optimizers.Adam(cfg.train.learning_rate, beta_1=cfg.train.beta_1,
