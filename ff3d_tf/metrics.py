@@ -142,17 +142,17 @@ def compute_results(cells: np.ndarray, moving_cls: np.ndarray, buckets: np.ndarr
 def format_paper_table(result: dict[str, float], title: str = "") -> str:
     """The paper's Table 2 layout (vehicle / pedestrian / cyclist x all / moving / stationary, and background)."""
     cols = [(c, s) for c in ("vehicle", "pedestrian", "cyclist") for s in SUBSETS] + [("background", "all")]
-    head1 = f"{'':<14}" + "".join(f"{c[:10]:>10}" for c, _ in cols)
-    head2 = f"{'error metric':<14}" + "".join(f"{s[:10]:>10}" for _, s in cols)
+    head1 = f"{'':<14}" + "".join(f"{c[:10]:>11}" for c, _ in cols)
+    head2 = f"{'error metric':<14}" + "".join(f"{s[:10]:>11}" for _, s in cols)
     rows = []
     for label, stat, pct in (("mean (m/s)", "mean_l2_mps", False), ("mean (mph)", "mean_l2_mph", False),
                              ("<= 0.1 m/s", "frac_l2_le_0.1", True), ("<= 1.0 m/s", "frac_l2_le_1.0", True)):
         cells = []
         for c, s in cols:
             v = result[f"{c}/{s}/{stat}"]
-            cells.append(f"{'nan':>10}" if np.isnan(v) else (f"{100 * v:>9.1f}%" if pct else f"{v:>10.2f}"))
+            cells.append(f"{'nan':>11}" if np.isnan(v) else (f"{100 * v:>10.1f}%" if pct else f"{v:>11.2f}"))
         rows.append(f"{label:<14}" + "".join(cells))
-    counts = f"{'points':<14}" + "".join(f"{int(result[f'{c}/{s}/count']):>10d}" for c, s in cols)
+    counts = f"{'points':<14}" + "".join(f"{int(result[f'{c}/{s}/count']):>11d}" for c, s in cols)
     return "\n".join(([title] if title else []) + [head1, head2] + rows + [counts])
 
 
