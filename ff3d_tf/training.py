@@ -29,7 +29,7 @@ _LOG = logging.getLogger(__name__)
 
 
 class NonFiniteLossError(RuntimeError):
-    pass
+    """Too many non-finite steps in a row (`train.max_nonfinite_steps_in_row`); the weights were never touched."""
 
 
 def make_strategy() -> tf.distribute.Strategy:

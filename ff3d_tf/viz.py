@@ -45,9 +45,7 @@ def bev_flow_png(path: str, points_xyz: np.ndarray, flows: dict[str, np.ndarray]
     wheel.set_axis_off()
     if title:
         fig.suptitle(title)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def speed_histogram_png(path: str, speeds_by_class: dict[str, np.ndarray], title: str = "") -> str:
@@ -61,6 +59,10 @@ def speed_histogram_png(path: str, speeds_by_class: dict[str, np.ndarray], title
     ax.legend()
     if title:
         ax.set_title(title)
+    return _save(fig, path)
+
+
+def _save(fig, path: str) -> str:
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path

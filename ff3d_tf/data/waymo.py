@@ -35,7 +35,7 @@ class FrameDecodeError(ValueError):
 
 
 class MissingFlowLabelsError(FrameDecodeError):
-    pass
+    """The frame has no `range_image_flow_compressed`; the message says how to get labels."""
 
 
 MISSING_FLOW_HELP = (
