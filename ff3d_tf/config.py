@@ -111,6 +111,9 @@ class TrainConfig:
 
     global_batch_size: int = 64
     learning_rate: float = 1e-6
+    lr_schedule: str = "constant"  # constant | cosine (decay to lr_final_fraction * learning_rate at num_steps)
+    lr_final_fraction: float = 0.05
+    warmup_steps: int = 0
     beta_1: float = 0.9
     beta_2: float = 0.999
     num_steps: int = 100000
@@ -129,6 +132,10 @@ class TrainConfig:
             raise ConfigError("train.global_batch_size must be >= 1")
         if not self.learning_rate > 0:
             raise ConfigError("train.learning_rate must be > 0")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ConfigError(f"train.lr_schedule={self.lr_schedule!r}: constant or cosine")
+        if self.warmup_steps < 0 or not 0 <= self.lr_final_fraction <= 1:
+            raise ConfigError("train.warmup_steps must be >= 0 and train.lr_final_fraction in [0, 1]")
         if self.num_steps < 0:
             raise ConfigError("train.num_steps must be >= 0")
         if not 0 <= self.background_weight:

@@ -47,6 +47,20 @@ def model_inputs(batch: dict) -> dict:
     return {k: batch[k] for k in INPUT_KEYS}
 
 
+def learning_rate_schedule(cfg: ExperimentConfig):
+    """Constant (the paper) or linear warm-up then cosine decay over `train.num_steps`."""
+    t = cfg.train
+    if t.lr_schedule == "constant" and not t.warmup_steps:
+        return t.learning_rate
+    if t.lr_schedule == "constant":
+        return keras.optimizers.schedules.CosineDecay(0.0, 1, alpha=1.0, warmup_target=t.learning_rate,
+                                                      warmup_steps=t.warmup_steps)
+    return keras.optimizers.schedules.CosineDecay(
+        t.learning_rate if not t.warmup_steps else 0.0, max(t.num_steps - t.warmup_steps, 1),
+        alpha=t.lr_final_fraction, warmup_target=t.learning_rate if t.warmup_steps else None,
+        warmup_steps=t.warmup_steps)
+
+
 def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, shard=None, skip_batches: int = 0):
     """Repeated, shuffled (seeded: the same order on every run), batched and bucketed training examples."""
     ds = pairs.pair_dataset(files, cfg)
@@ -72,7 +86,7 @@ class Trainer:
         keras.utils.set_random_seed(cfg.train.seed)  # same initial weights for the same seed (reproducible runs)
         with self.strategy.scope():
             self.model = build_model(cfg)
-            self.optimizer = keras.optimizers.Adam(cfg.train.learning_rate, beta_1=cfg.train.beta_1,
+            self.optimizer = keras.optimizers.Adam(learning_rate_schedule(cfg), beta_1=cfg.train.beta_1,
                                                    beta_2=cfg.train.beta_2)
             self.optimizer.build(self.model.trainable_variables)
             self.step = tf.Variable(0, dtype=tf.int64, trainable=False, name="step")

@@ -120,8 +120,20 @@ def build_model(cfg: ExperimentConfig) -> FastFlow3D:
     g, m = cfg.grid, cfg.model
     model = FastFlow3D(g.num_pillars_x, g.num_pillars_y, g.x_range_m, g.y_range_m, g.z_range_m,
                        m.point_feature_dim, m.encoder_widths, m.encoder_depths, m.decoder_dims, m.head_hidden_dim)
-    model(dummy_inputs(1, 4))
+    # Create the variables by tracing a call (nothing runs): an eager dummy forward would allocate full-size grids
+    # (~0.75 GB at 512 x 512) that the allocator then keeps for the process' life.
+    tf.function(lambda inputs: model(inputs)).get_concrete_function(input_specs())
     return model
+
+
+def input_specs() -> dict[str, tf.TensorSpec]:
+    """TensorSpecs of the batched model input (any batch size and point counts)."""
+    return {"points_xyz_t0": tf.TensorSpec([None, None, 3], tf.float32),
+            "point_features_t0": tf.TensorSpec([None, None, 2], tf.float32),
+            "point_mask_t0": tf.TensorSpec([None, None], tf.bool),
+            "points_xyz_tm1_in_t0": tf.TensorSpec([None, None, 3], tf.float32),
+            "point_features_tm1": tf.TensorSpec([None, None, 2], tf.float32),
+            "point_mask_tm1": tf.TensorSpec([None, None], tf.bool)}
 
 
 def dummy_inputs(batch: int, num_points: int) -> dict[str, tf.Tensor]:
