@@ -24,11 +24,15 @@ COUNT_KEYS = ("frames", "points", "invalid_points", "background", "vehicle", "pe
               "no_label_zone_points")
 
 
-def annotate_frame(frame, record: bytes, prev: tuple | None, laser_names=schema.ALL_LASERS, returns=(1, 2),
-                   source: str = "<bytes>", record_index: int = 0) -> tuple[bytes, dict, tuple]:
-    """Fills `range_image_flow_compressed` of one parsed Frame; returns (serialized frame, counts, state for next)."""
-    decoded = waymo.decode_frame(record, laser_names=laser_names, returns=returns, inference_only=True,
-                                 with_pixels=True, source=source, record_index=record_index)
+def decode_options(laser_names=schema.ALL_LASERS, returns=(1, 2)) -> waymo.DecodeOptions:
+    return waymo.DecodeOptions(tuple(sorted(laser_names)), tuple(sorted(returns)), require_flow=False,
+                               with_pixels=True)
+
+
+def annotate_frame(frame, decoded: dict, prev: tuple | None, laser_names=schema.ALL_LASERS, returns=(1, 2)
+                   ) -> tuple[bytes, dict, tuple]:
+    """Fills `range_image_flow_compressed` of one parsed Frame from its decoded points (`decode_options`);
+    returns (serialized frame, counts, state for the next frame)."""
     boxes = boxes_from_wod_labels(frame.laser_labels)
     if prev is None:
         # No t-1 frame: object points are unlabelled (class -1); background stays 0.
@@ -47,30 +51,20 @@ def annotate_frame(frame, record: bytes, prev: tuple | None, laser_names=schema.
     counts["no_label_zone_points"] = int(nlz.sum())
     for c, name in schema.CLASS_NAMES.items():
         counts[name] = int(np.sum(cls == c))
-    for laser in frame.lasers:
-        if laser.name not in laser_names:
-            continue
-        for ret in returns:
-            ri = laser.ri_return1 if ret == 1 else laser.ri_return2
-            if not ri.range_image_compressed:
-                continue
-            sel = (decoded["laser_name"] == laser.name) & (decoded["return_index"] == ret)
-            shape = _range_image_hw(ri)
-            image = np.zeros(shape + (4,), np.float32)
+    lasers = {laser.name: laser for laser in frame.lasers}
+    shapes = iter(decoded["range_image_hw"])  # decoder order: sorted lasers, then sorted returns
+    for name in sorted(laser_names):
+        for ret in sorted(returns):
+            height, width = (int(v) for v in next(shapes))
+            ri = lasers[name].ri_return1 if ret == 1 else lasers[name].ri_return2
+            sel = (decoded["laser_name"] == name) & (decoded["return_index"] == ret)
+            image = np.zeros((height, width, 4), np.float32)
             image[..., 3] = schema.CLASS_NO_LABEL
             rc = decoded["pixel_row_col"][sel]
             image[rc[:, 0], rc[:, 1], :3] = flow[sel]
             image[rc[:, 0], rc[:, 1], 3] = cls[sel]
             ri.range_image_flow_compressed = encode_matrix(image)
     return frame.SerializeToString(), counts, (boxes, decoded["pose"], decoded["timestamp_micros"])
-
-
-def _range_image_hw(ri) -> tuple[int, int]:
-    import zlib
-
-    from waymo_open_dataset import dataset_pb2
-    m = dataset_pb2.MatrixFloat.FromString(zlib.decompress(ri.range_image_compressed))
-    return int(m.shape.dims[0]), int(m.shape.dims[1])
 
 
 def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS, returns=(1, 2),
@@ -90,25 +84,23 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
     prev = None
     t0 = time.time()
     stats = waymo.ReadStats()
+    last_index = -1
     with tf.io.TFRecordWriter(tmp) as writer:
-        for index, record in waymo.iterate_records(in_path, stats, skip_bad_records):
-            try:
-                frame = dataset_pb2.Frame.FromString(record)
-                data, counts, prev = annotate_frame(frame, record, prev, laser_names, returns, in_path, index)
-            except Exception as err:  # noqa: BLE001 - reported with file/record, or re-raised
-                if not skip_bad_records:
-                    raise
-                _LOG.warning("%s record %d skipped: %s", in_path, index, err)
-                totals["skipped_records"] += 1
-                prev = None  # the next frame has no valid t-1
-                continue
+        # Records decode in parallel (tf.data) while this loop labels and re-encodes the previous ones.
+        for index, record, decoded in waymo.decoded_records(in_path, decode_options(laser_names, returns),
+                                                            skip_bad_records, stats):
+            if index != last_index + 1:
+                prev = None  # a skipped record in between: this frame has no valid t-1
+            last_index = index
+            frame = dataset_pb2.Frame.FromString(record)
+            data, counts, prev = annotate_frame(frame, decoded, prev, laser_names, returns)
             writer.write(data)
             for k, v in counts.items():
                 totals[k] += v
             if (index + 1) % 10 == 0:
                 _LOG.info("%s: %d frames, %.1f frames/s", os.path.basename(in_path), index + 1,
                           (index + 1) / (time.time() - t0))
-    totals["skipped_records"] += stats.skipped
+    totals["skipped_records"] = stats.skipped
     os.replace(tmp, out_path)
     totals["seconds"] = time.time() - t0
     return totals

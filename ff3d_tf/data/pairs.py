@@ -111,16 +111,12 @@ def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
 
 
 def _frames_dataset(path: str, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool):
-    options = decode_options(cfg, inference_only)
-    records = tf.data.TFRecordDataset(path).enumerate()
-
-    def decode(index, record):
-        source = tf.strings.join([path, " record ", tf.strings.as_string(index)])
-        frame = waymo.decode_frame_tensors(record, source, options)
+    def with_count(index, record, frame):
+        del index, record
         frame["num_points"] = tf.shape(frame["points_xyz"])[0]
         return frame
 
-    frames = records.map(decode, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+    frames = waymo.frames_dataset(path, decode_options(cfg, inference_only)).map(with_count)
     if skip_bad_records:
         frames = frames.ignore_errors(log_warning=True)
     return frames

@@ -49,7 +49,9 @@ class DecodeOptions:
     laser_names: tuple[int, ...] = schema.ALL_LASERS
     returns: tuple[int, ...] = (1,)
     require_flow: bool = True  # False: frames without labels decode with flow 0 and class -1 (inference input)
-    with_pixels: bool = False  # also return pixel_row_col, return_index, in_no_label_zone (for label writers)
+    # Also return pixel_row_col [N,2], return_index [N], in_no_label_zone [N] and range_image_hw [L*R,2] (height,
+    # width of each decoded range image, sorted by laser then return): what label writers need.
+    with_pixels: bool = False
 
 
 def _op_name(kind: str, field: str) -> str:
@@ -168,7 +170,8 @@ def decode_frame_tensors(serialized, source, options: DecodeOptions = DecodeOpti
     vehicle_from_world = tf.linalg.inv(frame_pose)
 
     outputs: dict[str, list] = {k: [] for k in ("points_xyz", "intensity", "elongation", "flow_mps", "class_id",
-                                                "laser_name", "pixel_row_col", "return_index", "in_no_label_zone")}
+                                                "laser_name", "pixel_row_col", "return_index", "in_no_label_zone",
+                                                "range_image_hw")}
     for laser in sorted(options.laser_names):
         lname = schema.LASER_NAMES[laser]
         cal_index = _select_by_name(_col0(cal_names, 0), tf.range(tf.shape(cal_names)[0]), laser, "laser_calibrations",
@@ -257,10 +260,11 @@ def decode_frame_tensors(serialized, source, options: DecodeOptions = DecodeOpti
             outputs["pixel_row_col"].append(pixel_rc)
             outputs["return_index"].append(tf.fill([m], ret))
             outputs["in_no_label_zone"].append(values[:, 3] > 0)
+            outputs["range_image_hw"].append(tf.reshape(tf.shape(ri)[:2], [1, 2]))
 
     result = {k: tf.concat(v, 0) for k, v in outputs.items()}
     if not options.with_pixels:
-        for k in ("pixel_row_col", "return_index", "in_no_label_zone"):
+        for k in ("pixel_row_col", "return_index", "in_no_label_zone", "range_image_hw"):
             result.pop(k)
     result["pose"] = frame_pose
     result["timestamp_micros"] = timestamp
@@ -359,23 +363,67 @@ def iterate_records(path: str, stats: ReadStats | None = None, skip_bad_records:
         index += 1
 
 
-def read_frames(paths, *, laser_names=schema.ALL_LASERS, returns=(1,), inference_only=False, with_pixels=False,
-                skip_bad_records=False, stats: ReadStats | None = None) -> Iterator[tuple[str, int, dict]]:
-    """Yields (path, record_index, decoded frame) over files; bad records raise, or are skipped and counted."""
+def frames_dataset(path: str, options: DecodeOptions = DecodeOptions(), skip: int = 0) -> tf.data.Dataset:
+    """(record_index, record, decoded frame) of one file, decoded in graph in parallel, in file order."""
+    def decode(index, record):
+        source = tf.strings.join([path, " record ", tf.strings.as_string(index)])
+        return index, record, decode_frame_tensors(record, source, options)
+
+    records = tf.data.TFRecordDataset(path).enumerate()
+    if skip:
+        records = records.skip(skip)
+    return records.map(decode, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+
+
+def decoded_records(path: str, options: DecodeOptions = DecodeOptions(), skip_bad_records: bool = False,
+                    stats: ReadStats | None = None) -> Iterator[tuple[int, bytes, dict]]:
+    """(record_index, record bytes, decoded frame as NumPy) of one file, decoded in parallel by `tf.data`.
+
+    Errors surface in file order, so the failing record is the one after the last yielded: it raises a
+    FrameDecodeError naming file, record and field, or (skip_bad_records) is counted and reading resumes after it.
+    A corrupt or truncated TFRecord ends the file (nothing after it can be framed).
+    """
     stats = stats if stats is not None else ReadStats()
-    for path in ([paths] if isinstance(paths, str) else paths):
-        for index, record in iterate_records(path, stats, skip_bad_records):
-            try:
-                frame = decode_frame(record, laser_names=laser_names, returns=returns, inference_only=inference_only,
-                                     with_pixels=with_pixels, source=path, record_index=index)
-            except MissingFlowLabelsError:
-                raise
-            except FrameDecodeError as error:
+    next_index = 0
+    while True:
+        try:
+            for index, record, frame in frames_dataset(path, options, next_index).prefetch(2):
+                next_index = int(index) + 1
+                stats.records += 1
+                stats.decoded += 1
+                yield next_index - 1, record.numpy(), _to_numpy(frame)
+            return
+        except tf.errors.NotFoundError as err:
+            raise FrameDecodeError(path, next_index, "file", f"cannot open ({err.message[:160]})") from None
+        except tf.errors.OpError as err:
+            if "user-defined function" in err.message:  # raised by the decoder: this record is bad
+                field, reason = _field_from_op_error(err)
+                if reason.startswith("MISSING_FLOW"):
+                    raise MissingFlowLabelsError(path, next_index, field, reason[len("MISSING_FLOW "):]) from None
+                error = FrameDecodeError(path, next_index, field, reason)
                 if not skip_bad_records:
-                    raise
+                    raise error from None
+                stats.records += 1
                 stats.skipped += 1
                 stats.errors.append(str(error))
                 _LOG.warning("skipping %s", error)
+                next_index += 1
                 continue
-            stats.decoded += 1
+            # Raised by the TFRecord reader: the file cannot be framed from here on.
+            error = FrameDecodeError(path, next_index, "tfrecord",
+                                     f"corrupt or truncated TFRecord ({err.message.strip().splitlines()[0][:160]})")
+            if not skip_bad_records:
+                raise error from None
+            stats.skipped += 1
+            stats.errors.append(str(error))
+            _LOG.warning("skipping the rest of %s: %s", path, error)
+            return
+
+
+def read_frames(paths, *, laser_names=schema.ALL_LASERS, returns=(1,), inference_only=False, with_pixels=False,
+                skip_bad_records=False, stats: ReadStats | None = None) -> Iterator[tuple[str, int, dict]]:
+    """Yields (path, record_index, decoded frame) over files; bad records raise, or are skipped and counted."""
+    options = DecodeOptions(tuple(laser_names), tuple(returns), not inference_only, with_pixels)
+    for path in ([paths] if isinstance(paths, str) else paths):
+        for index, _, frame in decoded_records(path, options, skip_bad_records, stats):
             yield path, index, frame
