@@ -98,25 +98,25 @@ def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose
     if len(boxes_t0["heading"]) == 0:
         return flow.astype(np.float32), cls
     owner = points_in_boxes(pts, boxes_t0, tolerance_m, enlarge_m)
+    k = len(boxes_t0["heading"])
     b_t0 = box_matrices(np.asarray(boxes_t0["center"], np.float64), np.asarray(boxes_t0["heading"], np.float64))
     tm1_index = {str(t): i for i, t in enumerate(boxes_tm1["track_id"])}
-    if tm1_index:
+    match = np.array([tm1_index.get(str(t), -1) for t in boxes_t0["track_id"]], np.int64)  # [K]
+    # T_delta per t0 box (identity where unmatched): t0 point -> its position at t-1, in the t0 frame.
+    t_delta = np.tile(np.eye(4), (k, 1, 1))
+    if np.any(match >= 0):
         b_tm1 = box_matrices(np.asarray(boxes_tm1["center"], np.float64),
                              np.asarray(boxes_tm1["heading"], np.float64))
-    t0_from_tm1 = np.linalg.inv(np.asarray(pose_t0, np.float64)) @ np.asarray(pose_tm1, np.float64)
-    for j, track in enumerate(boxes_t0["track_id"]):
-        sel = owner == j
-        if not sel.any():
-            continue
-        i = tm1_index.get(str(track))
-        if i is None:
-            cls[sel] = schema.CLASS_NO_LABEL
-            continue
-        t_delta = t0_from_tm1 @ b_tm1[i] @ np.linalg.inv(b_t0[j])  # t0 point -> its position at t-1 (t0 frame)
-        p0 = pts[sel]
-        p1 = p0 @ t_delta[:3, :3].T + t_delta[:3, 3]
-        flow[sel] = (p0 - p1) / dt_s
-        cls[sel] = int(boxes_t0["class_id"][j])
+        t0_from_tm1 = np.linalg.inv(np.asarray(pose_t0, np.float64)) @ np.asarray(pose_tm1, np.float64)
+        m = match >= 0
+        t_delta[m] = t0_from_tm1 @ b_tm1[match[m]] @ np.linalg.inv(b_t0[m])
+    inside = np.nonzero(owner >= 0)[0]
+    box = owner[inside]
+    matched = match[box] >= 0
+    p0 = pts[inside]
+    p1 = np.einsum("nij,nj->ni", t_delta[box, :3, :3], p0) + t_delta[box, :3, 3]
+    flow[inside] = np.where(matched[:, None], (p0 - p1) / dt_s, 0.0)
+    cls[inside] = np.where(matched, np.asarray(boxes_t0["class_id"], np.int32)[box], schema.CLASS_NO_LABEL)
     return flow.astype(np.float32), cls
 
 

@@ -93,8 +93,11 @@ class ModelConfig:
     # Upsample-Skip (d, d_b) for rows S, T, U; row V keeps U's depth.
     decoder_dims: tuple[tuple[int, int], ...] = ((128, 128), (128, 64), (64, 64))
     head_hidden_dim: int = 32  # row Y
+    # Zeros for row Z's kernel (the model starts at the zero-flow prediction) instead of the paper's Glorot init:
+    # sum-pooled dense pillars through the linear decoder otherwise start at outputs of tens of m/s.
+    zero_init_output: bool = False
     jit_compile: bool = True
-    mixed_precision: bool = False  # bfloat16/float16 compute for the conv stack (GPU)
+    mixed_precision: bool = False  # bfloat16 compute, float32 variables (Keras "mixed_bfloat16")
 
     def validate(self) -> None:
         if len(self.encoder_widths) != 3 or len(self.encoder_depths) != 3 or len(self.decoder_dims) != 3:

@@ -32,7 +32,13 @@ def _rss_gb(field: str) -> float:
 
 
 def _reset_peak_rss() -> None:
-    """Resets VmHWM to the current RSS, so the next peak excludes start-up and XLA compilation (Linux >= 4.0)."""
+    """Returns freed heap to the OS and resets VmHWM to the current RSS, so the next peak excludes start-up and XLA
+    compilation (Linux >= 4.0, glibc)."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
     try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
@@ -62,23 +68,20 @@ def main():
     p.add_argument("--points", default="32000,100000,255000,1000000")
     p.add_argument("--runs", type=int, default=5)
     p.add_argument("--out", default="latency.json")
-    p.add_argument("--mixed_precision", action="store_true", help="bfloat16/float16 compute (GPU)")
     args = p.parse_args()
     cfg = _common.load(args)
-    if args.mixed_precision:
-        import keras
-        keras.mixed_precision.set_global_policy("mixed_float16" if tf.config.list_physical_devices("GPU")
-                                                else "mixed_bfloat16")
     model = build_model(cfg)
+    framework_baseline_gb = _rss_gb("VmRSS")  # TensorFlow imported, model variables created
     jit = cfg.model.jit_compile
     forward = tf.function(lambda x: model(x, training=False), jit_compile=jit)
     rng = np.random.default_rng(0)
     results = {"device": (tf.config.list_physical_devices("GPU") or ["cpu"])[0].__repr__(),
                "grid": [cfg.grid.num_pillars_x, cfg.grid.num_pillars_y], "jit_compile": jit,
-               "mixed_precision": args.mixed_precision, "params": model.count_params(), "latency": {}}
+               "mixed_precision": cfg.model.mixed_precision, "params": model.count_params(),
+               "framework_baseline_rss_gb": framework_baseline_gb, "latency": {}}
     # Conv floor: the encoder (both frames stacked) + decoder on an already-built grid.
     h, w, c = cfg.grid.num_pillars_y, cfg.grid.num_pillars_x, cfg.model.point_feature_dim
-    bev = tf.constant(rng.uniform(0, 1, (2, h, w, c)).astype(np.float32))
+    bev = tf.cast(tf.constant(rng.uniform(0, 1, (2, h, w, c)).astype(np.float32)), model.conv_v.compute_dtype)
 
     def convs(x):
         skips = [x]

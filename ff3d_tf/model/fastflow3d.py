@@ -27,7 +27,8 @@ INPUT_KEYS = ("points_xyz_t0", "point_features_t0", "point_mask_t0", "points_xyz
 class FastFlow3D(keras.Model):
     def __init__(self, num_pillars_x=512, num_pillars_y=512, x_range_m=(-85.0, 85.0), y_range_m=(-85.0, 85.0),
                  z_range_m=(-3.0, 3.0), point_feature_dim=64, encoder_widths=(64, 128, 256), encoder_depths=(4, 6, 6),
-                 decoder_dims=((128, 128), (128, 64), (64, 64)), head_hidden_dim=32, **kwargs):
+                 decoder_dims=((128, 128), (128, 64), (64, 64)), head_hidden_dim=32, zero_init_output=False,
+                 **kwargs):
         super().__init__(**kwargs)
         self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
         self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
@@ -36,8 +37,11 @@ class FastFlow3D(keras.Model):
         self.encoder_depths = tuple(int(d) for d in encoder_depths)
         self.decoder_dims = tuple(tuple(int(v) for v in d) for d in decoder_dims)
         self.head_hidden_dim = int(head_hidden_dim)
+        self.zero_init_output = bool(zero_init_output)
 
-        self.pillarize = L.Pillarize(num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, name="pillarize")
+        # Pillar indices and offsets always in float32 (a bfloat16 x would move points across pillars).
+        self.pillarize = L.Pillarize(num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, name="pillarize",
+                                     dtype="float32")
         self.point_encoder = L.PointEncoder(self.point_feature_dim, name="A")
         self.scatter = L.ScatterToGrid(num_pillars_x, num_pillars_y, name="B")
         letters = iter(string.ascii_uppercase[2:] + "".join(f"E{i}" for i in range(100)))
@@ -58,7 +62,8 @@ class FastFlow3D(keras.Model):
         self.conv_v = keras.layers.Conv2D(self.decoder_dims[-1][0], 3, padding="same", use_bias=False,
                                           kernel_initializer="glorot_uniform", name="V")
         self.head_y = L.UngridHead(self.head_hidden_dim, name="Y")
-        self.head_z = keras.layers.Dense(3, kernel_initializer="glorot_uniform", name="Z")
+        self.head_z = keras.layers.Dense(3, kernel_initializer="zeros" if self.zero_init_output else "glorot_uniform",
+                                         name="Z")
 
     def call(self, inputs, training=False):
         batch = tf.shape(inputs["points_xyz_t0"])[0]
@@ -66,16 +71,17 @@ class FastFlow3D(keras.Model):
                                                   tf.cast(inputs["point_mask_t0"], tf.bool))
         enc_tm1, ids_tm1, valid_tm1 = self.pillarize(inputs["points_xyz_tm1_in_t0"], inputs["point_features_tm1"],
                                                      tf.cast(inputs["point_mask_tm1"], tf.bool))
-        # Row A once over both clouds (shared weights, one set of BN statistics): [B, N0+N1, 8].
-        num_t0 = tf.shape(enc_t0)[1]
-        valid_both = tf.concat([valid_t0, valid_tm1], 1)
-        feat_both = self.point_encoder(tf.concat([enc_t0, enc_tm1], 1), valid_both, training=training)
-        feat_t0 = feat_both[:, :num_t0]
-        # Row B: both frames into one [2B,H,W,C] grid, t0 samples first (tm1 ids shifted by B grids).
-        cells = self.num_pillars_x * self.num_pillars_y
-        ids_both = tf.concat([ids_t0, ids_tm1 + batch * cells], 1)
-        ids_both = tf.where(valid_both, ids_both, 2 * batch * cells)
-        bev = tf.cast(self.scatter(feat_both, ids_both, 2 * batch), self.compute_dtype)  # [2B,H,W,C]
+        # Row A on both clouds (shared weights, one set of BN statistics over both), one cloud at a time so that
+        # only one cloud's 64-d point features are alive at once; each is scattered (row B) right away and the t0
+        # cloud's per-point part of row Y is taken before its features are dropped.
+        feat_t0, feat_tm1 = self.point_encoder([enc_t0, enc_tm1], [valid_t0, valid_tm1], training=training)
+        if not self.head_y.built:
+            self.head_y.build((tuple(feat_t0.shape[:-1]) + (self.decoder_dims[-1][0],), feat_t0.shape,
+                               enc_t0.shape))
+        point_term_t0 = self.head_y.point_term(feat_t0, enc_t0)  # [B,N0,32]
+        grid_t0 = self.scatter(feat_t0, ids_t0, batch)
+        grid_tm1 = self.scatter(feat_tm1, ids_tm1, batch)
+        bev = tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_v.compute_dtype)  # [2B,H,W,C], t0 samples first
 
         skips = [bev]
         x = bev
@@ -92,8 +98,7 @@ class FastFlow3D(keras.Model):
         x = self.upsample_skips[1]([x, both(skips[1])])
         x = self.upsample_skips[2]([x, both(skips[0])])
         grid_flow_embedding = self.conv_v(x)  # [B,H,W,64]
-        y = self.head_y([grid_flow_embedding, tf.cast(feat_t0, self.compute_dtype),
-                         tf.cast(enc_t0, self.compute_dtype), ids_t0])
+        y = self.head_y([grid_flow_embedding, point_term_t0, ids_t0])
         flow = tf.cast(self.head_z(y), tf.float32)
         flow = tf.where(valid_t0[..., None], flow, tf.zeros_like(flow))
         return {"flow_mps": flow, "point_valid": valid_t0}
@@ -112,14 +117,24 @@ class FastFlow3D(keras.Model):
                 "x_range_m": self.x_range_m, "y_range_m": self.y_range_m, "z_range_m": self.z_range_m,
                 "point_feature_dim": self.point_feature_dim, "encoder_widths": self.encoder_widths,
                 "encoder_depths": self.encoder_depths, "decoder_dims": self.decoder_dims,
-                "head_hidden_dim": self.head_hidden_dim}
+                "head_hidden_dim": self.head_hidden_dim, "zero_init_output": self.zero_init_output}
 
 
 def build_model(cfg: ExperimentConfig) -> FastFlow3D:
     """The model of a config, with its variables created (so count_params works before the first call)."""
     g, m = cfg.grid, cfg.model
-    model = FastFlow3D(g.num_pillars_x, g.num_pillars_y, g.x_range_m, g.y_range_m, g.z_range_m,
-                       m.point_feature_dim, m.encoder_widths, m.encoder_depths, m.decoder_dims, m.head_hidden_dim)
+    previous = keras.config.dtype_policy()
+    # Mixed precision: bfloat16 compute, float32 variables (no loss scaling needed); the layers take the policy that
+    # is global while they are constructed.
+    keras.config.set_dtype_policy("mixed_bfloat16" if m.mixed_precision else "float32")
+    try:
+        # The model itself stays float32 so that it does not cast the input points (only its layers compute in
+        # the mixed policy).
+        model = FastFlow3D(g.num_pillars_x, g.num_pillars_y, g.x_range_m, g.y_range_m, g.z_range_m,
+                           m.point_feature_dim, m.encoder_widths, m.encoder_depths, m.decoder_dims,
+                           m.head_hidden_dim, m.zero_init_output, dtype="float32")
+    finally:
+        keras.config.set_dtype_policy(previous)
     # Create the variables by tracing a call (nothing runs): an eager dummy forward would allocate full-size grids
     # (~0.75 GB at 512 x 512) that the allocator then keeps for the process' life.
     tf.function(lambda inputs: model(inputs)).get_concrete_function(input_specs())

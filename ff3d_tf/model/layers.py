@@ -68,6 +68,8 @@ class MaskedBatchNorm(keras.layers.Layer):
     """Batch normalisation over the valid points only (padding and invalid points do not move the statistics).
 
     Four values per channel, as the table counts them: gamma, beta (trainable), moving mean, moving variance.
+    Call with one tensor and mask, or with lists of them (e.g. the two clouds): the statistics are then computed
+    over all of them together and a list is returned.
     """
 
     def __init__(self, momentum=0.99, epsilon=1e-3, **kwargs):
@@ -83,21 +85,25 @@ class MaskedBatchNorm(keras.layers.Layer):
                                                trainable=False)
 
     def call(self, inputs, mask, training=False):
+        single = not isinstance(inputs, (list, tuple))
+        inputs, mask = ([inputs], [mask]) if single else (list(inputs), list(mask))
+        dtype = inputs[0].dtype
         if training:
-            w = tf.cast(mask, inputs.dtype)[..., None]
-            count = tf.maximum(tf.reduce_sum(w), 1.0)
-            axes = list(range(len(inputs.shape) - 1))
-            mean = tf.reduce_sum(inputs * w, axes) / count
-            var = tf.reduce_sum(tf.square(inputs - mean) * w, axes) / count
+            ws = [tf.cast(m, dtype)[..., None] for m in mask]
+            axes = list(range(len(inputs[0].shape) - 1))
+            count = tf.maximum(tf.add_n([tf.reduce_sum(w) for w in ws]), 1.0)
+            mean = tf.add_n([tf.reduce_sum(x * w, axes) for x, w in zip(inputs, ws)]) / count
+            var = tf.add_n([tf.reduce_sum(tf.square(x - mean) * w, axes) for x, w in zip(inputs, ws)]) / count
             self.moving_mean.assign(self.moving_mean * self.momentum + tf.cast(mean, self.moving_mean.dtype) *
                                     (1.0 - self.momentum))
             self.moving_variance.assign(self.moving_variance * self.momentum +
                                         tf.cast(var, self.moving_variance.dtype) * (1.0 - self.momentum))
         else:
-            mean = tf.cast(self.moving_mean, inputs.dtype)
-            var = tf.cast(self.moving_variance, inputs.dtype)
-        scale = tf.cast(self.gamma, inputs.dtype) * tf.math.rsqrt(var + self.epsilon)
-        return (inputs - mean) * scale + tf.cast(self.beta, inputs.dtype)
+            mean = tf.cast(self.moving_mean, dtype)
+            var = tf.cast(self.moving_variance, dtype)
+        scale = tf.cast(self.gamma, dtype) * tf.math.rsqrt(var + self.epsilon)
+        out = [(x - mean) * scale + tf.cast(self.beta, dtype) for x in inputs]
+        return out[0] if single else out
 
     def get_config(self):
         return {**super().get_config(), "momentum": self.momentum, "epsilon": self.epsilon}
@@ -120,12 +126,21 @@ class PointEncoder(keras.layers.Layer):
                                         name="linear")
 
     def build(self, input_shape):
+        if isinstance(input_shape, (list, tuple)) and isinstance(input_shape[0], (list, tuple)):
+            input_shape = input_shape[0]
         self.norm.build(input_shape)
         self.dense.build(input_shape)
 
-    def call(self, encoding, point_valid, training=False):
-        h = tf.nn.relu(self.dense(self.norm(encoding, point_valid, training=training)))
-        return tf.where(point_valid[..., None], h, tf.zeros_like(h))
+    def call(self, encodings, point_valid, training=False):
+        """encodings [B,N,8] (or a list of clouds, normalised with joint statistics) -> [B,N,units] (or a list)."""
+        single = not isinstance(encodings, (list, tuple))
+        normed = self.norm(encodings, point_valid, training=training)
+        normed, valid = ([normed], [point_valid]) if single else (normed, point_valid)
+        out = []
+        for x, v in zip(normed, valid):
+            h = tf.nn.relu(self.dense(x))
+            out.append(tf.where(v[..., None], h, tf.zeros_like(h)))
+        return out[0] if single else out
 
     def get_config(self):
         return {**super().get_config(), "units": self.units}
@@ -231,6 +246,7 @@ class UngridHead(keras.layers.Layer):
         self.units = int(units)
 
     def build(self, input_shape):
+        """input_shape: (grid [.., Cg], point features [.., Cp], encoding [.., 8])."""
         grid_shape, point_shape, encoding_shape = input_shape[0], input_shape[1], input_shape[2]
         self.grid_channels = int(grid_shape[-1])
         self.point_channels = int(point_shape[-1])
@@ -238,18 +254,24 @@ class UngridHead(keras.layers.Layer):
         self.kernel = self.add_weight(name="kernel", shape=(fan_in, self.units), initializer="glorot_uniform")
         self.bias = self.add_weight(name="bias", shape=(self.units,), initializer="zeros")
 
-    def call(self, inputs):
-        bev, point_features, encoding, pillar_ids = inputs  # [B,H,W,Cg], [B,N,Cp], [B,N,8], [B,N]
-        kernel = tf.cast(self.kernel, bev.dtype)
-        k_grid = kernel[: self.grid_channels]
+    def point_term(self, point_features, encoding):
+        """The per-point part (a @ K_a + e @ K_e + bias) [B,N,U]; computed early so that the 64-d point features
+        need not stay alive through the convolutions."""
+        kernel = tf.cast(self.kernel, point_features.dtype)
+        encoding = tf.cast(encoding, point_features.dtype)
         k_point = kernel[self.grid_channels: self.grid_channels + self.point_channels]
         k_enc = kernel[self.grid_channels + self.point_channels:]
+        return (tf.einsum("bnc,cu->bnu", point_features, k_point) + tf.einsum("bnc,cu->bnu", encoding, k_enc) +
+                tf.cast(self.bias, point_features.dtype))
+
+    def call(self, inputs):
+        """inputs: bev [B,H,W,Cg], point_term [B,N,U] (from `point_term`), pillar_ids [B,N] -> [B,N,U]."""
+        bev, point_term, pillar_ids = inputs
+        k_grid = tf.cast(self.kernel, bev.dtype)[: self.grid_channels]
         projected = tf.reshape(tf.einsum("bhwc,cu->bhwu", bev, k_grid), [-1, self.units])  # [B*H*W, U]
         cells = tf.shape(projected)[0]
         safe_ids = tf.minimum(pillar_ids, cells - 1)  # dummy ids gather any cell; masked by the caller
-        gathered = tf.gather(projected, safe_ids)  # [B,N,U]
-        return (gathered + tf.einsum("bnc,cu->bnu", point_features, k_point) +
-                tf.einsum("bnc,cu->bnu", encoding, k_enc) + tf.cast(self.bias, bev.dtype))
+        return tf.gather(projected, safe_ids) + tf.cast(point_term, bev.dtype)  # [B,N,U]
 
     def get_config(self):
         return {**super().get_config(), "units": self.units}

@@ -113,3 +113,17 @@ def test_tiny_and_empty_clouds(tiny_config, n):
     model = build_model(tiny_config)
     out = model(_inputs(np.random.default_rng(6), 1, n, n))
     assert out["flow_mps"].shape == (1, n, 3)
+
+
+def test_mixed_precision_close_to_float32(tiny_config):
+    import dataclasses
+    cfg16 = dataclasses.replace(tiny_config, model=dataclasses.replace(tiny_config.model, mixed_precision=True))
+    m32, m16 = build_model(tiny_config), build_model(cfg16)
+    assert m16.conv_C.conv.compute_dtype == "bfloat16" and m16.conv_C.conv.kernel.dtype == "float32"
+    m16.set_weights(m32.get_weights())
+    inputs = _inputs(np.random.default_rng(7), 1, 300, 300)
+    a, b = m32(inputs), m16(inputs)
+    assert b["flow_mps"].dtype == tf.float32
+    np.testing.assert_array_equal(a["point_valid"].numpy(), b["point_valid"].numpy())
+    rel = np.linalg.norm(b["flow_mps"] - a["flow_mps"]) / np.linalg.norm(a["flow_mps"])
+    assert rel < 0.05, rel
