@@ -19,6 +19,9 @@ import tensorflow as tf
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.model import layers as L
 
+# Points per chunk of the point encoder / scatter loop: bounds the [chunk, 64] feature memory at any cloud size.
+POINT_CHUNK = 1 << 17
+
 INPUT_KEYS = ("points_xyz_t0", "point_features_t0", "point_mask_t0", "points_xyz_tm1_in_t0", "point_features_tm1",
               "point_mask_tm1")
 
@@ -65,22 +68,43 @@ class FastFlow3D(keras.Model):
         self.head_z = keras.layers.Dense(3, kernel_initializer="zeros" if self.zero_init_output else "glorot_uniform",
                                          name="Z")
 
+    def build(self, input_shape=None):
+        """Creates every variable from the configuration alone (the shapes depend on the grid, not on the inputs)."""
+        del input_shape
+        h, w, c = self.num_pillars_y, self.num_pillars_x, self.point_feature_dim
+        self.point_encoder.build((None, None, 8))
+        shape = (None, h, w, c)
+        skip_shapes = [shape]
+        for stage in self.encoder_stages:
+            for block in stage:
+                block.build(shape)
+                shape = tuple(block.conv.compute_output_shape(shape))
+            skip_shapes.append(shape)
+
+        def both(sh):
+            return sh[:-1] + (2 * sh[-1],)
+        x_shape = both(skip_shapes[3])
+        for block, skip in zip(self.upsample_skips, (skip_shapes[2], skip_shapes[1], skip_shapes[0])):
+            block.build((x_shape, both(skip)))
+            x_shape = both(skip)[:-1] + (block.depth,)
+        self.conv_v.build(x_shape)
+        self.head_y.build(((None, h, w, self.conv_v.filters), (None, None, c), (None, None, 8)))
+        self.head_z.build((None, None, self.head_hidden_dim))
+        self.built = True
+
     def call(self, inputs, training=False):
         batch = tf.shape(inputs["points_xyz_t0"])[0]
         enc_t0, ids_t0, valid_t0 = self.pillarize(inputs["points_xyz_t0"], inputs["point_features_t0"],
                                                   tf.cast(inputs["point_mask_t0"], tf.bool))
         enc_tm1, ids_tm1, valid_tm1 = self.pillarize(inputs["points_xyz_tm1_in_t0"], inputs["point_features_tm1"],
                                                      tf.cast(inputs["point_mask_tm1"], tf.bool))
-        # Row A on both clouds (shared weights, one set of BN statistics over both), one cloud at a time so that
-        # only one cloud's 64-d point features are alive at once; each is scattered (row B) right away and the t0
-        # cloud's per-point part of row Y is taken before its features are dropped.
-        feat_t0, feat_tm1 = self.point_encoder([enc_t0, enc_tm1], [valid_t0, valid_tm1], training=training)
-        if not self.head_y.built:
-            self.head_y.build((tuple(feat_t0.shape[:-1]) + (self.decoder_dims[-1][0],), feat_t0.shape,
-                               enc_t0.shape))
-        point_term_t0 = self.head_y.point_term(feat_t0, enc_t0)  # [B,N0,32]
-        grid_t0 = self.scatter(feat_t0, ids_t0, batch)
-        grid_tm1 = self.scatter(feat_tm1, ids_tm1, batch)
+        # Row A on both clouds: shared weights and one set of BN statistics over both clouds (8-d, cheap), then
+        # each cloud is encoded and scattered (row B) in chunks of points, so that memory does not grow with a full
+        # [N, 64] feature array per cloud; the t0 chunks also yield the per-point part of row Y.
+        normed_t0, normed_tm1 = self.point_encoder.norm([enc_t0, enc_tm1], [valid_t0, valid_tm1],
+                                                        training=training)
+        grid_t0, point_term_t0 = self._encode_cloud(normed_t0, valid_t0, ids_t0, batch, enc_t0)
+        grid_tm1, _ = self._encode_cloud(normed_tm1, valid_tm1, ids_tm1, batch, None)
         bev = tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_v.compute_dtype)  # [2B,H,W,C], t0 samples first
 
         skips = [bev]
@@ -102,6 +126,56 @@ class FastFlow3D(keras.Model):
         flow = tf.cast(self.head_z(y), tf.float32)
         flow = tf.where(valid_t0[..., None], flow, tf.zeros_like(flow))
         return {"flow_mps": flow, "point_valid": valid_t0}
+
+    def _encode_cloud(self, normed, valid, pillar_ids, batch, encoding_for_head):
+        """Rows A (after its BN) and B for one cloud, POINT_CHUNK points at a time.
+
+        normed [B,N,8] (BN applied), valid [B,N], pillar_ids [B,N] (dummy B*H*W) -> grid [B,H,W,C] and, when
+        `encoding_for_head` [B,N,8] is given, the head's per-point term [B,N,U].
+        """
+        n_static = normed.shape[1]
+        n = tf.shape(normed)[1]
+        chunk = min(POINT_CHUNK, n_static) if n_static is not None else tf.minimum(POINT_CHUNK, n)
+        chunk = tf.maximum(chunk, 1) if not isinstance(chunk, int) else max(chunk, 1)
+        # At least one chunk, so that an empty cloud still yields [B,0,U] terms (the chunk is then padding only).
+        num_chunks = max((n_static + chunk - 1) // chunk, 1) if n_static is not None and isinstance(chunk, int) \
+            else tf.maximum((n + chunk - 1) // chunk, 1)
+        pad = num_chunks * chunk - n
+        cells = self.num_pillars_x * self.num_pillars_y
+
+        def chunks(t, fill):  # [B,N,...] -> [K,B,chunk,...]
+            t = tf.pad(t, [[0, 0], [0, pad]] + [[0, 0]] * (len(t.shape) - 2), constant_values=fill)
+            t = tf.reshape(t, tf.concat([[batch, num_chunks, chunk], tf.shape(t)[2:]], 0))
+            return tf.transpose(t, [1, 0, 2] + list(range(3, len(t.shape))))
+
+        normed_c = chunks(normed, 0.0)
+        valid_c = chunks(valid, False)
+        ids_c = chunks(pillar_ids, batch * cells)
+        enc_c = chunks(encoding_for_head, 0.0) if encoding_for_head is not None else None
+        c = self.point_feature_dim
+        grid = tf.zeros([batch * cells + 1, c], self.point_encoder.dense.compute_dtype)
+        u = self.head_hidden_dim
+        # Plain tensor loop state (no TensorArray: its lists do not differentiate under XLA).
+        terms = tf.zeros([num_chunks if enc_c is not None else 1, batch, chunk, u],
+                         self.point_encoder.dense.compute_dtype)
+
+        def body(i, grid, terms):
+            feat = self.point_encoder.features(normed_c[i], valid_c[i])  # [B,chunk,C]
+            grid = tf.tensor_scatter_nd_add(grid, tf.reshape(ids_c[i], [-1, 1]), tf.reshape(feat, [-1, c]))
+            if enc_c is not None:
+                terms = tf.tensor_scatter_nd_update(terms, [[i]], self.head_y.point_term(feat, enc_c[i])[None])
+            return [i + 1, grid, terms]
+
+        def cond(i, grid, terms):
+            del grid, terms
+            return i < num_chunks
+
+        _, grid, terms = tf.while_loop(cond, body, [tf.constant(0), grid, terms], maximum_iterations=num_chunks)
+        grid = tf.reshape(grid[:-1], [batch, self.num_pillars_y, self.num_pillars_x, c])
+        if enc_c is None:
+            return grid, None
+        point_term = tf.reshape(tf.transpose(terms, [1, 0, 2, 3]), [batch, num_chunks * chunk, u])[:, :n]
+        return grid, point_term
 
     def table_rows(self) -> list[tuple[str, int]]:
         """(row, parameter count) in the order of the paper's table."""
@@ -135,9 +209,9 @@ def build_model(cfg: ExperimentConfig) -> FastFlow3D:
                            m.head_hidden_dim, m.zero_init_output, dtype="float32")
     finally:
         keras.config.set_dtype_policy(previous)
-    # Create the variables by tracing a call (nothing runs): an eager dummy forward would allocate full-size grids
-    # (~0.75 GB at 512 x 512) that the allocator then keeps for the process' life.
-    tf.function(lambda inputs: model(inputs)).get_concrete_function(input_specs())
+    # Variables from the configuration, without a forward pass: an eager dummy forward would allocate full-size
+    # grids (~0.75 GB at 512 x 512) that the allocator then keeps for the life of the process.
+    model.build()
     return model
 
 

@@ -12,6 +12,14 @@ import tensorflow as tf
 _PKG = "ff3d_tf"
 
 
+def _dense_last_axis(x, kernel):
+    """x [..., C] @ kernel [C, U] as one 2-D matmul (no tensordot transposes: inside the point-chunk loop those
+    need compile-time shapes under XLA)."""
+    kernel = tf.cast(kernel, x.dtype)
+    out = tf.matmul(tf.reshape(x, [-1, tf.shape(x)[-1]]), kernel)
+    return tf.reshape(out, tf.concat([tf.shape(x)[:-1], tf.shape(kernel)[-1:]], 0))
+
+
 @keras.saving.register_keras_serializable(package=_PKG)
 class Pillarize(keras.layers.Layer):
     """Snap-To-Grid indices and the 8-D point encoding (table rows A/B inputs).
@@ -77,6 +85,8 @@ class MaskedBatchNorm(keras.layers.Layer):
         self.momentum, self.epsilon = float(momentum), float(epsilon)
 
     def build(self, input_shape):
+        if isinstance(input_shape, (list, tuple)) and isinstance(input_shape[0], (list, tuple)):
+            input_shape = input_shape[0]  # called with a list of clouds
         c = int(input_shape[-1])
         self.gamma = self.add_weight(name="gamma", shape=(c,), initializer="ones")
         self.beta = self.add_weight(name="beta", shape=(c,), initializer="zeros")
@@ -136,11 +146,13 @@ class PointEncoder(keras.layers.Layer):
         single = not isinstance(encodings, (list, tuple))
         normed = self.norm(encodings, point_valid, training=training)
         normed, valid = ([normed], [point_valid]) if single else (normed, point_valid)
-        out = []
-        for x, v in zip(normed, valid):
-            h = tf.nn.relu(self.dense(x))
-            out.append(tf.where(v[..., None], h, tf.zeros_like(h)))
+        out = [self.features(x, v) for x, v in zip(normed, valid)]
         return out[0] if single else out
+
+    def features(self, normed, point_valid):
+        """Linear + ReLU of already normalised encodings; zero for invalid points."""
+        h = tf.nn.relu(_dense_last_axis(normed, self.dense.kernel))
+        return tf.where(point_valid[..., None], h, tf.zeros_like(h))
 
     def get_config(self):
         return {**super().get_config(), "units": self.units}
@@ -261,7 +273,7 @@ class UngridHead(keras.layers.Layer):
         encoding = tf.cast(encoding, point_features.dtype)
         k_point = kernel[self.grid_channels: self.grid_channels + self.point_channels]
         k_enc = kernel[self.grid_channels + self.point_channels:]
-        return (tf.einsum("bnc,cu->bnu", point_features, k_point) + tf.einsum("bnc,cu->bnu", encoding, k_enc) +
+        return (_dense_last_axis(point_features, k_point) + _dense_last_axis(encoding, k_enc) +
                 tf.cast(self.bias, point_features.dtype))
 
     def call(self, inputs):
