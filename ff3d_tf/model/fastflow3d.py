@@ -131,37 +131,40 @@ class FastFlow3D(keras.Model):
         """Rows A (after its BN) and B for one cloud, POINT_CHUNK points at a time.
 
         normed [B,N,8] (BN applied), valid [B,N], pillar_ids [B,N] (dummy B*H*W) -> grid [B,H,W,C] and, when
-        `encoding_for_head` [B,N,8] is given, the head's per-point term [B,N,U].
+        `encoding_for_head` [B,N,8] is given, the head's per-point term [B,N,U]. The B*N points are flattened (ids
+        are global over the batch), padded to whole chunks and taken chunk by chunk: no transposes, and memory for
+        only one chunk's [chunk, C] features.
         """
-        n_static = normed.shape[1]
         n = tf.shape(normed)[1]
-        chunk = min(POINT_CHUNK, n_static) if n_static is not None else tf.minimum(POINT_CHUNK, n)
-        chunk = tf.maximum(chunk, 1) if not isinstance(chunk, int) else max(chunk, 1)
-        # At least one chunk, so that an empty cloud still yields [B,0,U] terms (the chunk is then padding only).
-        num_chunks = max((n_static + chunk - 1) // chunk, 1) if n_static is not None and isinstance(chunk, int) \
-            else tf.maximum((n + chunk - 1) // chunk, 1)
-        pad = num_chunks * chunk - n
+        total_static = normed.shape[0] * normed.shape[1] if None not in normed.shape[:2] else None
+        total = batch * n
+        if total_static is not None:
+            chunk = max(min(POINT_CHUNK, total_static), 1)
+            num_chunks = max(-(-total_static // chunk), 1)
+        else:
+            chunk = tf.maximum(tf.minimum(POINT_CHUNK, total), 1)
+            num_chunks = tf.maximum((total + chunk - 1) // chunk, 1)
+        pad = num_chunks * chunk - total
         cells = self.num_pillars_x * self.num_pillars_y
 
-        def chunks(t, fill):  # [B,N,...] -> [K,B,chunk,...]
-            t = tf.pad(t, [[0, 0], [0, pad]] + [[0, 0]] * (len(t.shape) - 2), constant_values=fill)
-            t = tf.reshape(t, tf.concat([[batch, num_chunks, chunk], tf.shape(t)[2:]], 0))
-            return tf.transpose(t, [1, 0, 2] + list(range(3, len(t.shape))))
+        def chunks(t, fill):  # [B,N,...] -> [K,chunk,...]
+            flat = tf.reshape(t, tf.concat([[total], tf.shape(t)[2:]], 0))
+            flat = tf.pad(flat, [[0, pad]] + [[0, 0]] * (len(t.shape) - 2), constant_values=fill)
+            return tf.reshape(flat, tf.concat([[num_chunks, chunk], tf.shape(t)[2:]], 0))
 
         normed_c = chunks(normed, 0.0)
         valid_c = chunks(valid, False)
         ids_c = chunks(pillar_ids, batch * cells)
         enc_c = chunks(encoding_for_head, 0.0) if encoding_for_head is not None else None
-        c = self.point_feature_dim
-        grid = tf.zeros([batch * cells + 1, c], self.point_encoder.dense.compute_dtype)
-        u = self.head_hidden_dim
+        c, u = self.point_feature_dim, self.head_hidden_dim
+        dtype = self.point_encoder.dense.compute_dtype
+        grid = tf.zeros([batch * cells + 1, c], dtype)
         # Plain tensor loop state (no TensorArray: its lists do not differentiate under XLA).
-        terms = tf.zeros([num_chunks if enc_c is not None else 1, batch, chunk, u],
-                         self.point_encoder.dense.compute_dtype)
+        terms = tf.zeros([num_chunks if enc_c is not None else 1, chunk, u], dtype)
 
         def body(i, grid, terms):
-            feat = self.point_encoder.features(normed_c[i], valid_c[i])  # [B,chunk,C]
-            grid = tf.tensor_scatter_nd_add(grid, tf.reshape(ids_c[i], [-1, 1]), tf.reshape(feat, [-1, c]))
+            feat = self.point_encoder.features(normed_c[i], valid_c[i])  # [chunk,C]
+            grid = tf.tensor_scatter_nd_add(grid, ids_c[i][:, None], feat)
             if enc_c is not None:
                 terms = tf.tensor_scatter_nd_update(terms, [[i]], self.head_y.point_term(feat, enc_c[i])[None])
             return [i + 1, grid, terms]
@@ -174,8 +177,7 @@ class FastFlow3D(keras.Model):
         grid = tf.reshape(grid[:-1], [batch, self.num_pillars_y, self.num_pillars_x, c])
         if enc_c is None:
             return grid, None
-        point_term = tf.reshape(tf.transpose(terms, [1, 0, 2, 3]), [batch, num_chunks * chunk, u])[:, :n]
-        return grid, point_term
+        return grid, tf.reshape(tf.reshape(terms, [-1, u])[:total], [batch, n, u])
 
     def table_rows(self) -> list[tuple[str, int]]:
         """(row, parameter count) in the order of the paper's table."""
