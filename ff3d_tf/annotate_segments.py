@@ -8,6 +8,7 @@ without a return hold zeros and class -1. The first frame of a segment has no t-
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import time
@@ -43,28 +44,43 @@ def annotate_frame(frame, decoded: dict, prev: tuple | None, laser_names=schema.
         dt_s = (decoded["timestamp_micros"] - prev_ts) * 1e-6
         flow, cls = bootstrap_flow(decoded["points_xyz"], boxes, prev_boxes, decoded["pose"], prev_pose, dt_s)
     nlz = decoded["in_no_label_zone"]
-    cls = np.where(nlz, schema.CLASS_NO_LABEL, cls)
-    flow = np.where(nlz[:, None], 0.0, flow)
+    if nlz.any():
+        cls[nlz] = schema.CLASS_NO_LABEL
+        flow[nlz] = 0.0
     counts = dict.fromkeys(COUNT_KEYS, 0)
     counts["frames"], counts["points"] = 1, len(cls)
-    counts["invalid_points"] = int(np.sum(cls == schema.CLASS_NO_LABEL))
+    per_class = np.bincount(cls + 1, minlength=6)  # classes -1..4
+    counts["invalid_points"] = int(per_class[0])
     counts["no_label_zone_points"] = int(nlz.sum())
     for c, name in schema.CLASS_NAMES.items():
-        counts[name] = int(np.sum(cls == c))
+        counts[name] = int(per_class[c + 1])
     lasers = {laser.name: laser for laser in frame.lasers}
     shapes = iter(decoded["range_image_hw"])  # decoder order: sorted lasers, then sorted returns
+    # Points come ordered by laser, then return: each range image's points are one contiguous slice.
+    key = decoded["laser_name"].astype(np.int64) * 4 + decoded["return_index"]
     for name in sorted(laser_names):
         for ret in sorted(returns):
             height, width = (int(v) for v in next(shapes))
             ri = lasers[name].ri_return1 if ret == 1 else lasers[name].ri_return2
-            sel = (decoded["laser_name"] == name) & (decoded["return_index"] == ret)
+            lo, hi = np.searchsorted(key, name * 4 + ret, "left"), np.searchsorted(key, name * 4 + ret, "right")
+            if hi == lo:
+                ri.range_image_flow_compressed = _empty_flow_image(height, width)
+                continue
             image = np.zeros((height, width, 4), np.float32)
             image[..., 3] = schema.CLASS_NO_LABEL
-            rc = decoded["pixel_row_col"][sel]
-            image[rc[:, 0], rc[:, 1], :3] = flow[sel]
-            image[rc[:, 0], rc[:, 1], 3] = cls[sel]
+            rc = decoded["pixel_row_col"][lo:hi]
+            image[rc[:, 0], rc[:, 1], :3] = flow[lo:hi]
+            image[rc[:, 0], rc[:, 1], 3] = cls[lo:hi]
             ri.range_image_flow_compressed = encode_matrix(image)
     return frame.SerializeToString(), counts, (boxes, decoded["pose"], decoded["timestamp_micros"])
+
+
+@functools.lru_cache(maxsize=16)
+def _empty_flow_image(height: int, width: int) -> bytes:
+    """Encoded flow image of a range image without returns (zeros, class -1), made once per size."""
+    image = np.zeros((height, width, 4), np.float32)
+    image[..., 3] = schema.CLASS_NO_LABEL
+    return encode_matrix(image)
 
 
 def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS, returns=(1, 2),

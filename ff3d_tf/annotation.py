@@ -46,19 +46,27 @@ def points_in_boxes(points_xyz: np.ndarray, boxes: dict, tolerance_m: float = 1e
     heading = np.asarray(boxes["heading"], np.float64)
     pts = np.asarray(points_xyz, np.float64)
     cell = 1.0
-    ix = np.floor(pts[:, 0] / cell).astype(np.int64)
-    iy = np.floor(pts[:, 1] / cell).astype(np.int64)
-    span = 1 << 20  # keys ix * span + iy; |iy| < span / 2 for any cloud under 500 km
-    keys = ix * span + iy
-    order = np.argsort(keys, kind="stable")
-    sorted_keys = keys[order]
     radius = np.linalg.norm(half[:, :2], axis=1)
+    # Mark the 1 m cells under any box's bounding circle; only points in marked cells are sorted and tested.
+    lo_cell = np.floor((centers[:, :2] - radius[:, None]) / cell).astype(np.int64)  # [K,2]
+    hi_cell = np.floor((centers[:, :2] + radius[:, None]) / cell).astype(np.int64)
+    origin = lo_cell.min(axis=0)
+    extent = hi_cell.max(axis=0) - origin + 1
+    marked = np.zeros(extent, bool)
+    for (ax, ay), (bx, by) in zip(lo_cell - origin, hi_cell - origin):
+        marked[ax:bx + 1, ay:by + 1] = True
+    ij = np.floor(pts[:, :2] / cell).astype(np.int64) - origin
+    in_area = np.all((ij >= 0) & (ij < extent), axis=1)
+    near = np.nonzero(in_area)[0]
+    near = near[marked[ij[near, 0], ij[near, 1]]]
+    span = 1 << 20  # keys ix * span + iy (cells relative to the marked area's corner)
+    keys = ij[near, 0] * span + ij[near, 1]
+    order = near[np.argsort(keys, kind="stable")]
+    sorted_keys = np.sort(keys, kind="stable")
     for j in range(k):
-        x0, x1 = np.floor((centers[j, 0] - radius[j]) / cell), np.floor((centers[j, 0] + radius[j]) / cell)
-        y0, y1 = np.floor((centers[j, 1] - radius[j]) / cell), np.floor((centers[j, 1] + radius[j]) / cell)
-        cols = np.arange(x0, x1 + 1, dtype=np.int64)
-        lo = np.searchsorted(sorted_keys, cols * span + int(y0), "left")
-        hi = np.searchsorted(sorted_keys, cols * span + int(y1), "right")
+        cols = np.arange(lo_cell[j, 0], hi_cell[j, 0] + 1, dtype=np.int64) - origin[0]
+        lo = np.searchsorted(sorted_keys, cols * span + (lo_cell[j, 1] - origin[1]), "left")
+        hi = np.searchsorted(sorted_keys, cols * span + (hi_cell[j, 1] - origin[1]), "right")
         if not np.any(hi > lo):
             continue
         cand = order[np.concatenate([np.arange(a_, b_) for a_, b_ in zip(lo, hi) if b_ > a_])]
@@ -93,10 +101,10 @@ def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose
         raise ValueError("bootstrap_flow: dt_s must be non-zero")
     pts = np.asarray(points_xyz_t0, np.float64).reshape(-1, 3)
     n = len(pts)
-    flow = np.zeros((n, 3), np.float64)
+    flow = np.zeros((n, 3), np.float32)
     cls = np.full(n, schema.CLASS_BACKGROUND, np.int32)
     if len(boxes_t0["heading"]) == 0:
-        return flow.astype(np.float32), cls
+        return flow, cls
     owner = points_in_boxes(pts, boxes_t0, tolerance_m, enlarge_m)
     k = len(boxes_t0["heading"])
     b_t0 = box_matrices(np.asarray(boxes_t0["center"], np.float64), np.asarray(boxes_t0["heading"], np.float64))
@@ -117,7 +125,7 @@ def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose
     p1 = np.einsum("nij,nj->ni", t_delta[box, :3, :3], p0) + t_delta[box, :3, 3]
     flow[inside] = np.where(matched[:, None], (p0 - p1) / dt_s, 0.0)
     cls[inside] = np.where(matched, np.asarray(boxes_t0["class_id"], np.int32)[box], schema.CLASS_NO_LABEL)
-    return flow.astype(np.float32), cls
+    return flow, cls
 
 
 def boxes_from_wod_labels(laser_labels) -> dict:

@@ -79,14 +79,48 @@ def _guarded(tensor, checks):
         return tf.identity(tensor)
 
 
-def _matrix(compressed, field: str, channels: int, source, dtype=tf.float32):
+def _matrix_float_payload(raw, field: str):
+    """(data [M] float32, serialized MatrixShape) of a serialized MatrixFloat.
+
+    Fast path for the layout every writer produces (packed `data` first: tag 0x0A, varint length, little-endian
+    floats; then `shape`): the floats are reinterpreted in place with decode_raw, and only the small tail is parsed
+    as a proto. Any other layout goes through decode_proto.
+    """
+    n = tf.strings.length(raw)
+    head = tf.io.decode_raw(tf.strings.substr(tf.strings.join([raw, "\0" * 6]), 0, 6), tf.uint8)  # tag + varint
+    b = tf.cast(head[1:6], tf.int64)
+    ends = b < 128  # varint bytes without the continuation bit
+    nbytes = tf.cast(tf.argmax(tf.cast(ends, tf.int32)), tf.int64) + 1
+    length = tf.reduce_sum(tf.where(tf.range(5, dtype=tf.int64) < nbytes,
+                                    tf.bitwise.left_shift(tf.bitwise.bitwise_and(b, 127),
+                                                          7 * tf.range(5, dtype=tf.int64)), 0))
+    start = 1 + nbytes
+    fast = (tf.equal(head[0], 0x0A) & tf.reduce_any(ends) & (start + length <= tf.cast(n, tf.int64)) &
+            tf.equal(length % 4, 0))
+
+    def fast_path():
+        payload = tf.strings.substr(raw, start, length)
+        tail = tf.strings.substr(raw, start + length, tf.cast(n, tf.int64) - start - length)
+        tail_sizes, (tail_data, shape_msg) = _proto(tail, "MatrixFloat", ["data", "shape"], [tf.float32, tf.string],
+                                                    f"matrix__{field}")
+        data = tf.io.decode_raw(payload, tf.float32, little_endian=True)
+        # A second `data` field in the tail (legal, never written in practice) is appended as the proto would.
+        return tf.concat([data, tail_data[: tail_sizes[0]]], 0), shape_msg[0]
+
+    def slow_path():
+        sizes, (data, shape_msg) = _proto(raw, "MatrixFloat", ["data", "shape"], [tf.float32, tf.string],
+                                          f"matrix__{field}")
+        return data[: sizes[0]], shape_msg[0]
+
+    return tf.cond(fast, fast_path, slow_path)
+
+
+def _matrix(compressed, field: str, channels: int, source):
     """zlib -> MatrixFloat -> [H, W, channels] with checked shape and finite values."""
     raw = tf.io.decode_compressed(compressed, "ZLIB", name=_op_name("zlib", field))
-    sizes, (data, shape_msg) = _proto(raw, "MatrixFloat", ["data", "shape"], [dtype, tf.string], f"matrix__{field}")
-    dims_sizes, (dims,) = _proto(shape_msg[0], "MatrixShape", ["dims"], [tf.int32],
-                                 f"shape__{field}")
+    data, shape_msg = _matrix_float_payload(raw, field)
+    dims_sizes, (dims,) = _proto(shape_msg, "MatrixShape", ["dims"], [tf.int32], f"shape__{field}")
     dims = dims[: dims_sizes[0]]
-    data = data[: sizes[0]]
     checks = [
         _check(tf.equal(tf.size(dims), 3), field, "matrix shape must have 3 dims", source),
     ]
@@ -139,6 +173,7 @@ def _select_by_name(names, values, name: int, what: str, source):
         return tf.gather(values, tf.concat([hits, [0]], 0)[0])
 
 
+@tf.autograph.experimental.do_not_convert  # plain TF ops and static Python loops: no AutoGraph pass per dataset
 def decode_frame_tensors(serialized, source, options: DecodeOptions = DecodeOptions()) -> dict[str, tf.Tensor]:
     """Graph decoder of one serialized `Frame` (usable inside `tf.data.Dataset.map`).
 
