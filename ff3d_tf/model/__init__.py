@@ -1,2 +1,2 @@
 """FastFlow3D model (Keras 3)."""
-from ff3d_tf.model.fastflow3d import FastFlow3D, build_model, dummy_inputs  # noqa: F401
+from ff3d_tf.model.fastflow3d import FastFlow3D, build_model  # noqa: F401

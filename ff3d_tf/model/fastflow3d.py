@@ -20,7 +20,7 @@ from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.model import layers as L
 
 # Points per chunk of the point encoder / scatter loop: bounds the [chunk, 64] feature memory at any cloud size.
-POINT_CHUNK = 1 << 17
+POINT_CHUNK = 1 << 18
 
 INPUT_KEYS = ("points_xyz_t0", "point_features_t0", "point_mask_t0", "points_xyz_tm1_in_t0", "point_features_tm1",
               "point_mask_tm1")
@@ -46,7 +46,6 @@ class FastFlow3D(keras.Model):
         self.pillarize = L.Pillarize(num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, name="pillarize",
                                      dtype="float32")
         self.point_encoder = L.PointEncoder(self.point_feature_dim, name="A")
-        self.scatter = L.ScatterToGrid(num_pillars_x, num_pillars_y, name="B")
         letters = iter(string.ascii_uppercase[2:] + "".join(f"E{i}" for i in range(100)))
         # Every layer is also a plain attribute (conv_C, ..., upsample_S, ...): TF checkpoints track attributes, not
         # the Keras-tracked lists below, so optimizer state and weights round-trip through tf.train.Checkpoint.
@@ -164,7 +163,8 @@ class FastFlow3D(keras.Model):
 
         def body(i, grid, terms):
             feat = self.point_encoder.features(normed_c[i], valid_c[i])  # [chunk,C]
-            grid = tf.tensor_scatter_nd_add(grid, ids_c[i][:, None], feat)
+            # Row B, Snap-To-Grid: segment sum over flat pillar ids (dummy segment last for invalid points).
+            grid = grid + tf.math.unsorted_segment_sum(feat, ids_c[i], batch * cells + 1)
             if enc_c is not None:
                 terms = tf.tensor_scatter_nd_update(terms, [[i]], self.head_y.point_term(feat, enc_c[i])[None])
             return [i + 1, grid, terms]
@@ -215,21 +215,3 @@ def build_model(cfg: ExperimentConfig) -> FastFlow3D:
     # grids (~0.75 GB at 512 x 512) that the allocator then keeps for the life of the process.
     model.build()
     return model
-
-
-def input_specs() -> dict[str, tf.TensorSpec]:
-    """TensorSpecs of the batched model input (any batch size and point counts)."""
-    return {"points_xyz_t0": tf.TensorSpec([None, None, 3], tf.float32),
-            "point_features_t0": tf.TensorSpec([None, None, 2], tf.float32),
-            "point_mask_t0": tf.TensorSpec([None, None], tf.bool),
-            "points_xyz_tm1_in_t0": tf.TensorSpec([None, None, 3], tf.float32),
-            "point_features_tm1": tf.TensorSpec([None, None, 2], tf.float32),
-            "point_mask_tm1": tf.TensorSpec([None, None], tf.bool)}
-
-
-def dummy_inputs(batch: int, num_points: int) -> dict[str, tf.Tensor]:
-    pts = tf.zeros([batch, num_points, 3])
-    feats = tf.zeros([batch, num_points, 2])
-    mask = tf.ones([batch, num_points], tf.bool)
-    return {"points_xyz_t0": pts, "point_features_t0": feats, "point_mask_t0": mask,
-            "points_xyz_tm1_in_t0": pts, "point_features_tm1": feats, "point_mask_tm1": mask}

@@ -159,31 +159,6 @@ class PointEncoder(keras.layers.Layer):
 
 
 @keras.saving.register_keras_serializable(package=_PKG)
-class ScatterToGrid(keras.layers.Layer):
-    """Table row B, Snap-To-Grid: sum (not max) of all point features of each pillar (dynamic voxelisation).
-
-    Call: point_features [..., C], pillar_ids [...] flat ids over (grid, row, col), num_grids G; the dummy id
-      G*H*W collects invalid points.
-    Returns: bev_features [G,H,W,C].
-    """
-
-    def __init__(self, num_pillars_x, num_pillars_y, **kwargs):
-        super().__init__(**kwargs)
-        self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
-
-    def call(self, point_features, pillar_ids, num_grids):
-        c = point_features.shape[-1]
-        cells = self.num_pillars_x * self.num_pillars_y
-        # [M, C] -> [G*H*W + 1, C]; the last (dummy) segment is dropped.
-        summed = tf.math.unsorted_segment_sum(tf.reshape(point_features, [-1, c]), tf.reshape(pillar_ids, [-1]),
-                                              num_grids * cells + 1)
-        return tf.reshape(summed[:-1], [num_grids, self.num_pillars_y, self.num_pillars_x, c])
-
-    def get_config(self):
-        return {**super().get_config(), "num_pillars_x": self.num_pillars_x, "num_pillars_y": self.num_pillars_y}
-
-
-@keras.saving.register_keras_serializable(package=_PKG)
 class ConvBlock(keras.layers.Layer):
     """Table rows C-R: 3x3 convolution (no bias), BatchNorm, ReLU."""
 
