@@ -31,25 +31,23 @@ def _rss_gb(field: str) -> float:
     return float("nan")
 
 
-def _reset_peak_rss() -> None:
+def _reset_peak_rss() -> bool:
     """Returns freed heap to the OS and resets VmHWM to the current RSS, so the next peak excludes start-up and XLA
-    compilation (Linux >= 4.0, glibc)."""
+    compilation (Linux >= 4.0, glibc). False where that is not possible (the peak then covers the whole process)."""
+    import ctypes
     try:
-        import ctypes
         ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-    try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
-    except OSError:
-        pass
+        return True
+    except (OSError, AttributeError):
+        return False
 
 
 def _time(fn, runs, warmup=2):
     for _ in range(warmup):
         tf.nest.map_structure(lambda t: t.numpy(), fn())
-    _reset_peak_rss()
+    peak_reset = _reset_peak_rss()
     rss_before = _rss_gb("VmRSS")
     times = []
     for _ in range(runs):
@@ -60,7 +58,7 @@ def _time(fn, runs, warmup=2):
             # Peak resident memory of the process during the timed runs (start-up and compilation excluded),
             # and what inference added on top of the resident set before them.
             "peak_rss_gb": _rss_gb("VmHWM"), "rss_before_gb": rss_before,
-            "peak_increase_gb": _rss_gb("VmHWM") - rss_before}
+            "peak_increase_gb": _rss_gb("VmHWM") - rss_before, "peak_reset_after_warmup": peak_reset}
 
 
 def main():
