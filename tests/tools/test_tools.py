@@ -1,0 +1,35 @@
+"""The thin tools run end to end (subprocesses, as a user calls them)."""
+import json
+import os
+import subprocess
+import sys
+
+from conftest import ROOT
+
+
+def _run(*args):
+    out = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return out.stdout
+
+
+def test_model_summary_last_line():
+    lines = _run("tools/model_summary.py", "--config", "configs/fastflow3d_waymo.yaml").strip().splitlines()
+    assert lines[-1] == "total_params 5233571"
+    assert any(line.split() == ["Y", "4,384"] for line in lines)
+
+
+def test_dataset_stats_table_and_png(tiny_segment, tmp_path):
+    out = _run("tools/dataset_stats.py", "--data_dir", os.path.dirname(tiny_segment), "--out_dir", str(tmp_path))
+    assert "vehicle" in out and "pedestrian" in out
+    stats = json.loads((tmp_path / "dataset_stats.json").read_text())
+    assert stats["frames"] == 4 and stats["vehicle"]["moving"] > 0
+    assert (tmp_path / "speed_histogram.png").stat().st_size > 1000
+
+
+def test_bad_config_fails_before_work(tmp_path):
+    out = subprocess.run([sys.executable, "tools/train.py", "--config", "configs/synthetic_cpu.yaml", "--set",
+                          "grid.num_pillars_x=100", "--data_dir", str(tmp_path), "--model_dir", str(tmp_path / "m")],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode != 0 and "multiple of 8" in out.stderr
+    assert not (tmp_path / "m").exists()
