@@ -12,6 +12,7 @@ import numpy as np
 from ff3d_tf import schema
 
 BOX_KEYS = ("center", "size", "heading", "track_id", "class_id")
+_MAX_TABLE_CELLS = 1 << 22  # bound on the cell -> box table of points_in_boxes (cells per layer)
 
 
 def box_matrices(center: np.ndarray, heading: np.ndarray) -> np.ndarray:
@@ -31,53 +32,73 @@ def empty_boxes() -> dict:
 
 def points_in_boxes(points_xyz: np.ndarray, boxes: dict, tolerance_m: float = 1e-4,
                     enlarge_m=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """Index of the (first) box containing each point, -1 for none. A point on a face (within `tolerance_m`) is in.
+    """Index of the (lowest-numbered) box containing each point, -1 for none. A point on a face (within
+    `tolerance_m`) is inside.
 
-    Vectorised per box over a candidate set: points are bucketed once into 1 m x-y cells (sorted cell keys), and
-    each box tests only the points of the cells under its bounding circle (no Python loop over points).
+    No Python loop over points or boxes: every box paints the 1 m x-y cells (coarser when the boxes spread over more
+    than 2 km) under its axis-aligned footprint into a layered cell -> box table (layer l holds the l-th lowest box
+    index covering the cell), each point looks up its cell, and each layer tests all its candidate points against
+    their box at once. The number of layers is the largest number of boxes over one cell (a few where boxes touch).
     """
+    points_xyz = np.asarray(points_xyz).reshape(-1, 3)
     n = len(points_xyz)
-    owner = np.full(n, -1, np.int64)
     k = len(boxes["heading"])
+    owner = np.full(n, -1, np.int32)
     if n == 0 or k == 0:
         return owner
-    half = (np.asarray(boxes["size"], np.float64) + np.asarray(enlarge_m, np.float64)) / 2.0 + tolerance_m
+    half = (np.asarray(boxes["size"], np.float64) + np.asarray(enlarge_m, np.float64)) / 2.0 + tolerance_m  # [K,3]
     centers = np.asarray(boxes["center"], np.float64)
     heading = np.asarray(boxes["heading"], np.float64)
-    pts = np.asarray(points_xyz, np.float64)
-    cell = 1.0
-    radius = np.linalg.norm(half[:, :2], axis=1)
-    # Mark the 1 m cells under any box's bounding circle; only points in marked cells are sorted and tested.
-    lo_cell = np.floor((centers[:, :2] - radius[:, None]) / cell).astype(np.int64)  # [K,2]
-    hi_cell = np.floor((centers[:, :2] + radius[:, None]) / cell).astype(np.int64)
+    if not (np.isfinite(half).all() and np.isfinite(centers).all() and np.isfinite(heading).all()):
+        raise ValueError("points_in_boxes: boxes have non-finite center, size or heading")
+    cos_h, sin_h = np.cos(heading), np.sin(heading)
+    # Axis-aligned half extent of each rotated footprint, then its cell range.
+    ext = np.stack([np.abs(cos_h) * half[:, 0] + np.abs(sin_h) * half[:, 1],
+                    np.abs(sin_h) * half[:, 0] + np.abs(cos_h) * half[:, 1]], 1) + 1e-3  # margin: float32 points
+    span = np.ptp(np.concatenate([centers[:, :2] - ext, centers[:, :2] + ext]), axis=0)
+    cell_m = max(1.0, float(np.sqrt(np.prod(span + 1.0) / _MAX_TABLE_CELLS)))  # far-apart boxes: coarser cells
+    lo_cell = np.floor((centers[:, :2] - ext) / cell_m).astype(np.int64)  # [K,2]
+    hi_cell = np.floor((centers[:, :2] + ext) / cell_m).astype(np.int64)
     origin = lo_cell.min(axis=0)
-    extent = hi_cell.max(axis=0) - origin + 1
-    marked = np.zeros(extent, bool)
-    for (ax, ay), (bx, by) in zip(lo_cell - origin, hi_cell - origin):
-        marked[ax:bx + 1, ay:by + 1] = True
-    ij = np.floor(pts[:, :2] / cell).astype(np.int64) - origin
-    in_area = np.all((ij >= 0) & (ij < extent), axis=1)
-    near = np.nonzero(in_area)[0]
-    near = near[marked[ij[near, 0], ij[near, 1]]]
-    span = 1 << 20  # keys ix * span + iy (cells relative to the marked area's corner)
-    keys = ij[near, 0] * span + ij[near, 1]
-    order = near[np.argsort(keys, kind="stable")]
-    sorted_keys = np.sort(keys, kind="stable")
-    for j in range(k):
-        cols = np.arange(lo_cell[j, 0], hi_cell[j, 0] + 1, dtype=np.int64) - origin[0]
-        lo = np.searchsorted(sorted_keys, cols * span + (lo_cell[j, 1] - origin[1]), "left")
-        hi = np.searchsorted(sorted_keys, cols * span + (hi_cell[j, 1] - origin[1]), "right")
-        if not np.any(hi > lo):
-            continue
-        cand = order[np.concatenate([np.arange(a_, b_) for a_, b_ in zip(lo, hi) if b_ > a_])]
-        rel = pts[cand] - centers[j]
-        c, s = np.cos(heading[j]), np.sin(heading[j])
-        local_x = c * rel[:, 0] + s * rel[:, 1]
-        local_y = -s * rel[:, 0] + c * rel[:, 1]
-        inside = (np.abs(local_x) <= half[j, 0]) & (np.abs(local_y) <= half[j, 1]) & (np.abs(rel[:, 2]) <= half[j, 2])
-        hits = cand[inside]
-        hits = hits[owner[hits] < 0]  # first box wins where boxes overlap
-        owner[hits] = j
+    grid_shape = hi_cell.max(axis=0) - origin + 1
+    # (box, cell) pairs of every box's cell rectangle, without a loop: repeat each box over its cells.
+    counts_xy = hi_cell - lo_cell + 1
+    per_box = counts_xy[:, 0] * counts_xy[:, 1]
+    box_of_pair = np.repeat(np.arange(k), per_box)
+    rank = np.arange(len(box_of_pair)) - np.repeat(np.cumsum(per_box) - per_box, per_box)
+    cx = lo_cell[box_of_pair, 0] - origin[0] + rank // counts_xy[box_of_pair, 1]
+    cy = lo_cell[box_of_pair, 1] - origin[1] + rank % counts_xy[box_of_pair, 1]
+    flat_cell = cx * grid_shape[1] + cy
+    order = np.lexsort((box_of_pair, flat_cell))  # by cell, then by box index
+    flat_cell, box_of_pair = flat_cell[order], box_of_pair[order]
+    layer = np.arange(len(flat_cell)) - np.searchsorted(flat_cell, flat_cell, "left")
+    num_cells = int(grid_shape[0] * grid_shape[1])
+    table = np.full((layer.max() + 1, num_cells + 1), -1, np.int32)  # last column: points outside the grid
+    table[layer, flat_cell] = box_of_pair
+    # Each point's cell, in int32 (at most _MAX_TABLE_CELLS cells). A float32 floor is exact enough for a candidate
+    # lookup: the inside test below runs in float64.
+    xy = points_xyz[:, :2] if cell_m == 1.0 else points_xyz[:, :2] / cell_m
+    ix = np.floor(xy[:, 0]).astype(np.int32) - np.int32(origin[0])
+    iy = np.floor(xy[:, 1]).astype(np.int32) - np.int32(origin[1])
+    outside = (ix.view(np.uint32) >= grid_shape[0]) | (iy.view(np.uint32) >= grid_shape[1])  # negatives wrap
+    cell = ix * np.int32(grid_shape[1]) + iy
+    cell[outside] = num_cells
+    box = table[0][cell]
+    cand = np.flatnonzero(box >= 0)
+    box, cell = box[cand], cell[cand]
+    for layer_index in range(len(table)):
+        if layer_index:
+            box = table[layer_index][cell]
+            keep = box >= 0
+            cand, cell, box = cand[keep], cell[keep], box[keep]
+        if len(cand) == 0:
+            break
+        rel = points_xyz[cand].astype(np.float64) - centers[box]
+        cb, sb, hb = cos_h[box], sin_h[box], half[box]
+        inside = ((np.abs(cb * rel[:, 0] + sb * rel[:, 1]) <= hb[:, 0]) &
+                  (np.abs(cb * rel[:, 1] - sb * rel[:, 0]) <= hb[:, 1]) & (np.abs(rel[:, 2]) <= hb[:, 2]))
+        owner[cand[inside]] = box[inside]
+        cand, cell = cand[~inside], cell[~inside]
     return owner
 
 
@@ -99,7 +120,7 @@ def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose
     """
     if dt_s == 0:
         raise ValueError("bootstrap_flow: dt_s must be non-zero")
-    pts = np.asarray(points_xyz_t0, np.float64).reshape(-1, 3)
+    pts = np.asarray(points_xyz_t0).reshape(-1, 3)
     n = len(pts)
     flow = np.zeros((n, 3), np.float32)
     cls = np.full(n, schema.CLASS_BACKGROUND, np.int32)
@@ -118,13 +139,14 @@ def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose
         t0_from_tm1 = np.linalg.inv(np.asarray(pose_t0, np.float64)) @ np.asarray(pose_tm1, np.float64)
         m = match >= 0
         t_delta[m] = t0_from_tm1 @ b_tm1[match[m]] @ np.linalg.inv(b_t0[m])
-    inside = np.nonzero(owner >= 0)[0]
+    inside = np.flatnonzero(owner >= 0)
     box = owner[inside]
-    matched = match[box] >= 0
+    # flow = (p0 - T_delta p0) / dt = A p0 + c with A = (I - R_delta) / dt, c = -t_delta / dt (zero if unmatched).
+    a = (np.eye(3) - t_delta[:, :3, :3]) / dt_s  # [K,3,3]
+    c = -t_delta[:, :3, 3] / dt_s
     p0 = pts[inside]
-    p1 = np.einsum("nij,nj->ni", t_delta[box, :3, :3], p0) + t_delta[box, :3, 3]
-    flow[inside] = np.where(matched[:, None], (p0 - p1) / dt_s, 0.0)
-    cls[inside] = np.where(matched, np.asarray(boxes_t0["class_id"], np.int32)[box], schema.CLASS_NO_LABEL)
+    flow[inside] = (a[box, :, 0] * p0[:, :1] + a[box, :, 1] * p0[:, 1:2] + a[box, :, 2] * p0[:, 2:3] + c[box])
+    cls[inside] = np.where(match >= 0, np.asarray(boxes_t0["class_id"], np.int32), schema.CLASS_NO_LABEL)[box]
     return flow, cls
 
 

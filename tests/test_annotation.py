@@ -95,3 +95,37 @@ def test_annotate_tool_beam(tiny_segment, tmp_path, returns):
         np.testing.assert_allclose(ours["flow_mps"], orig["flow_mps"], atol=1e-3)
     assert counts["invalid_points"] == sum(int(np.sum(f["class_id"] == -1))
                                            for _, _, f in waymo.read_frames(tiny_segment))
+
+
+def test_points_in_boxes_matches_brute_force():
+    from ff3d_tf.annotation import points_in_boxes
+    rng = np.random.default_rng(3)
+    k = 40
+    boxes = {"center": np.c_[rng.uniform(-20, 20, (k, 2)), rng.uniform(0, 2, k)],
+             "size": rng.uniform(0.3, 6.0, (k, 3)), "heading": rng.uniform(-np.pi, np.pi, k)}
+    boxes["center"][1] = boxes["center"][0]  # two boxes on the same spot: the lower index wins
+    pts = np.r_[rng.uniform([-25, -25, -1], [25, 25, 4], (20000, 3)),
+                boxes["center"] + rng.uniform(-0.5, 0.5, (k, 3)) * boxes["size"]]  # some inside every box
+    # Points exactly on a face and just beyond it, for box 5.
+    c, s = np.cos(boxes["heading"][5]), np.sin(boxes["heading"][5])
+    half_len = boxes["size"][5, 0] / 2
+    on_face = boxes["center"][5] + half_len * np.array([c, s, 0.0])
+    beyond = boxes["center"][5] + (half_len + 1e-3) * np.array([c, s, 0.0])
+    pts = np.r_[pts, [on_face, beyond]]
+    # Brute force: every point against every box in the box frame, lowest box index first.
+    rel = pts[:, None, :] - boxes["center"][None]
+    ch, sh = np.cos(boxes["heading"]), np.sin(boxes["heading"])
+    local = np.stack([ch * rel[..., 0] + sh * rel[..., 1], -sh * rel[..., 0] + ch * rel[..., 1], rel[..., 2]], -1)
+    inside = np.all(np.abs(local) <= boxes["size"] / 2 + 1e-4, axis=-1)  # [N,K]
+    expected = np.where(inside.any(1), inside.argmax(1), -1)
+    got = points_in_boxes(pts.astype(np.float64), boxes)
+    np.testing.assert_array_equal(got, expected)
+    assert got[-2] == 5 and got[-1] != 5 and (got >= 0).sum() > 500
+    assert np.sum(inside.sum(1) > 1) > 10  # overlaps exercised the layered table
+    # Boxes kilometres apart use coarser cells and give the same answer.
+    far = {key: np.r_[v, v[:1]] for key, v in boxes.items()}
+    far["center"][-1] = [5000.0, -3000.0, 0.0]
+    np.testing.assert_array_equal(points_in_boxes(pts, far), expected)
+    with pytest.raises(ValueError, match="non-finite"):
+        bad = dict(boxes, heading=np.r_[np.nan, boxes["heading"][1:]])
+        points_in_boxes(pts, bad)

@@ -2,7 +2,8 @@
 
 The conversion follows the official `frame_utils.convert_range_image_to_point_cloud` conventions (column azimuths,
 reversed inclinations, extrinsic, TOP per-pixel pose correction) but masks the returns first and builds rotations in
-closed form, so it costs a fraction of the official path. Geometry runs in float64 and is cast to float32 at the end.
+closed form, so it costs a fraction of the official path. Geometry runs in float64 (per-pixel TOP rotations in
+float32, as their angles are stored) and is cast to float32 at the end.
 
 Errors: every check raises through `tf.debugging.Assert` with a message starting `FRAME_DECODE_ERROR field=<field>`;
 codec failures carry the failing field in their op name. `read_frames` turns both into `FrameDecodeError` naming the
@@ -10,6 +11,8 @@ file, the record index and the field. See `ff3d_tf.schema` for the decoded keys.
 """
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import dataclasses
 import logging
 import re
@@ -24,6 +27,7 @@ from ff3d_tf.data.wod_format import descriptor_source
 _LOG = logging.getLogger(__name__)
 _PKG = "waymo.open_dataset."
 _ERROR_TAG = "FRAME_DECODE_ERROR"
+DECODE_WORKERS = 2  # threads of decoded_records; each decode also runs its independent ops in parallel
 
 
 class FrameDecodeError(ValueError):
@@ -87,7 +91,7 @@ def _matrix_float_payload(raw, field: str):
     as a proto. Any other layout goes through decode_proto.
     """
     n = tf.strings.length(raw)
-    head = tf.io.decode_raw(tf.strings.substr(tf.strings.join([raw, "\0" * 6]), 0, 6), tf.uint8)  # tag + varint
+    head = tf.io.decode_raw(tf.strings.join([tf.strings.substr(raw, 0, 6), "\0" * 6]), tf.uint8)[:6]  # tag+varint
     b = tf.cast(head[1:6], tf.int64)
     ends = b < 128  # varint bytes without the continuation bit
     nbytes = tf.cast(tf.argmax(tf.cast(ends, tf.int32)), tf.int64) + 1
@@ -146,16 +150,16 @@ def _transform(serialized, field: str, source):
     return tf.reshape(values, [4, 4])
 
 
-def _rotation_rpy(rpy):
-    """[M,3] roll, pitch, yaw -> [M,3,3] = Rz(yaw) Ry(pitch) Rx(roll)."""
+def _rotate_rpy(rpy, xyz):
+    """Rz(yaw) Ry(pitch) Rx(roll) @ xyz per row: rpy, xyz [M,3] -> [M,3], without forming [M,3,3] matrices."""
     cr, sr = tf.cos(rpy[:, 0]), tf.sin(rpy[:, 0])
     cp, sp = tf.cos(rpy[:, 1]), tf.sin(rpy[:, 1])
     cy, sy = tf.cos(rpy[:, 2]), tf.sin(rpy[:, 2])
-    return tf.stack([
-        tf.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
-        tf.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
-        tf.stack([-sp, cp * sr, cp * cr], -1),
-    ], -2)
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    # Roll about x, then pitch about y, then yaw about z.
+    y1, z1 = cr * y - sr * z, sr * y + cr * z
+    x2, z2 = cp * x + sp * z1, cp * z1 - sp * x
+    return tf.stack([cy * x2 - sy * y1, sy * x2 + cy * y1, z2], -1)
 
 
 def _col0(values, fill):
@@ -265,19 +269,22 @@ def decode_frame_tensors(serialized, source, options: DecodeOptions = DecodeOpti
             pixel_rc = tf.cast(tf.where(ri[..., 0] > 0), tf.int32)
             values = tf.gather_nd(ri, pixel_rc)  # [M, 4]
             rng = tf.cast(values[:, 0], tf.float64)
+            # Trigonometry once per column (azimuth) and per row (inclination), gathered per point.
             az_correction = tf.atan2(extrinsic[1, 0], extrinsic[0, 0])
-            col = tf.cast(pixel_rc[:, 1], tf.float64)
-            azimuth = ((tf.cast(width, tf.float64) - col - 0.5) / tf.cast(width, tf.float64) * 2.0 - 1.0) * np.pi \
-                - az_correction
-            inclination = tf.gather(inclinations, pixel_rc[:, 0])
-            cos_incl = tf.cos(inclination)
-            xyz_sensor = tf.stack([tf.cos(azimuth) * cos_incl * rng, tf.sin(azimuth) * cos_incl * rng,
-                                   tf.sin(inclination) * rng], -1)
+            w = tf.cast(width, tf.float64)
+            azimuth = ((w - tf.cast(tf.range(width), tf.float64) - 0.5) / w * 2.0 - 1.0) * np.pi - az_correction
+            col, row = pixel_rc[:, 1], pixel_rc[:, 0]
+            cos_incl_rng = tf.gather(tf.cos(inclinations), row) * rng
+            xyz_sensor = tf.stack([tf.gather(tf.cos(azimuth), col) * cos_incl_rng,
+                                   tf.gather(tf.sin(azimuth), col) * cos_incl_rng,
+                                   tf.gather(tf.sin(inclinations), row) * rng], -1)
             xyz = tf.linalg.matmul(xyz_sensor, extrinsic[:3, :3], transpose_b=True) + extrinsic[:3, 3]
             if laser == 1:
-                pix_pose = tf.cast(tf.gather_nd(top_pose, pixel_rc), tf.float64)  # [M, 6]
-                rot = _rotation_rpy(pix_pose[:, :3])
-                xyz_world = tf.linalg.matvec(rot, xyz) + pix_pose[:, 3:]
+                # Per-pixel rotation in float32 (the stored angles are float32; < 1e-5 m at 75 m range), written
+                # out per component; the world translation and everything after it in float64.
+                pix_pose = tf.gather_nd(top_pose, pixel_rc)  # [M, 6] float32 as stored
+                xyz_world = tf.cast(_rotate_rpy(pix_pose[:, :3], tf.cast(xyz, tf.float32)), tf.float64) + \
+                    tf.cast(pix_pose[:, 3:], tf.float64)
                 xyz = tf.linalg.matmul(xyz_world, vehicle_from_world[:3, :3], transpose_b=True) + \
                     vehicle_from_world[:3, 3]
             m = tf.shape(pixel_rc)[0]
@@ -357,10 +364,14 @@ def decode_frame(serialized_frame: bytes, *, laser_names=schema.ALL_LASERS, retu
         return _to_numpy(_decoder(options)(tf.constant(serialized_frame), tf.constant(f"{source} record "
                                                                                       f"{record_index}")))
     except tf.errors.OpError as err:
-        field, reason = _field_from_op_error(err)
-        if reason.startswith("MISSING_FLOW"):
-            raise MissingFlowLabelsError(source, record_index, field, reason[len("MISSING_FLOW "):]) from None
-        raise FrameDecodeError(source, record_index, field, reason) from None
+        raise _decode_error(source, record_index, err) from None
+
+
+def _decode_error(path: str, record_index: int, err: tf.errors.OpError) -> FrameDecodeError:
+    field, reason = _field_from_op_error(err)
+    if reason.startswith("MISSING_FLOW"):
+        return MissingFlowLabelsError(path, record_index, field, reason[len("MISSING_FLOW "):])
+    return FrameDecodeError(path, record_index, field, reason)
 
 
 @dataclasses.dataclass
@@ -398,61 +409,73 @@ def iterate_records(path: str, stats: ReadStats | None = None, skip_bad_records:
         index += 1
 
 
-def frames_dataset(path: str, options: DecodeOptions = DecodeOptions(), skip: int = 0) -> tf.data.Dataset:
+def frames_dataset(path: str, options: DecodeOptions = DecodeOptions()) -> tf.data.Dataset:
     """(record_index, record, decoded frame) of one file, decoded in graph in parallel, in file order."""
     def decode(index, record):
         source = tf.strings.join([path, " record ", tf.strings.as_string(index)])
         return index, record, decode_frame_tensors(record, source, options)
 
     records = tf.data.TFRecordDataset(path).enumerate()
-    if skip:
-        records = records.skip(skip)
     return records.map(decode, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 
 def decoded_records(path: str, options: DecodeOptions = DecodeOptions(), skip_bad_records: bool = False,
-                    stats: ReadStats | None = None) -> Iterator[tuple[int, bytes, dict]]:
-    """(record_index, record bytes, decoded frame as NumPy) of one file, decoded in parallel by `tf.data`.
+                    stats: ReadStats | None = None, workers: int = DECODE_WORKERS
+                    ) -> Iterator[tuple[int, bytes, dict]]:
+    """(record_index, record bytes, decoded frame as NumPy) of one file, in file order.
 
-    Errors surface in file order, so the failing record is the one after the last yielded: it raises a
-    FrameDecodeError naming file, record and field, or (skip_bad_records) is counted and reading resumes after it.
-    A corrupt or truncated TFRecord ends the file (nothing after it can be framed).
+    `workers` threads call the decoder traced once per process (`_decoder`), so a new file costs no tracing or graph
+    optimisation (a per-file `tf.data` map costs about 4 s of both). A bad record raises a FrameDecodeError naming
+    file, record and field, or (skip_bad_records) is counted and reading goes on with the next record. A corrupt or
+    truncated TFRecord ends the file (nothing after it can be framed). Frames without scene-flow labels always raise
+    MissingFlowLabelsError when labels are required (skipping them would silently drop a whole segment).
     """
     stats = stats if stats is not None else ReadStats()
-    next_index = 0
-    while True:
+    decoder = _decoder(options)
+
+    def decode(index: int, record: bytes):
         try:
-            for index, record, frame in frames_dataset(path, options, next_index).prefetch(2):
-                next_index = int(index) + 1
-                stats.records += 1
-                stats.decoded += 1
-                yield next_index - 1, record.numpy(), _to_numpy(frame)
-            return
-        except tf.errors.NotFoundError as err:
-            raise FrameDecodeError(path, next_index, "file", f"cannot open ({err.message[:160]})") from None
+            return _to_numpy(decoder(tf.constant(record), tf.constant(f"{path} record {index}")))
         except tf.errors.OpError as err:
-            if "user-defined function" in err.message:  # raised by the decoder: this record is bad
-                field, reason = _field_from_op_error(err)
-                if reason.startswith("MISSING_FLOW"):
-                    raise MissingFlowLabelsError(path, next_index, field, reason[len("MISSING_FLOW "):]) from None
-                error = FrameDecodeError(path, next_index, field, reason)
-                if not skip_bad_records:
-                    raise error from None
-                stats.records += 1
+            return _decode_error(path, index, err)
+
+    with concurrent.futures.ThreadPoolExecutor(max(1, workers)) as pool:
+        pending: collections.deque = collections.deque()
+
+        def oldest():
+            index, record, future = pending.popleft()
+            result = future.result()
+            if isinstance(result, FrameDecodeError):
+                if not skip_bad_records or isinstance(result, MissingFlowLabelsError):
+                    raise result
                 stats.skipped += 1
-                stats.errors.append(str(error))
-                _LOG.warning("skipping %s", error)
-                next_index += 1
-                continue
-            # Raised by the TFRecord reader: the file cannot be framed from here on.
-            error = FrameDecodeError(path, next_index, "tfrecord",
-                                     f"corrupt or truncated TFRecord ({err.message.strip().splitlines()[0][:160]})")
-            if not skip_bad_records:
-                raise error from None
-            stats.skipped += 1
-            stats.errors.append(str(error))
-            _LOG.warning("skipping the rest of %s: %s", path, error)
-            return
+                stats.errors.append(str(result))
+                _LOG.warning("skipping %s", result)
+                return None
+            stats.decoded += 1
+            return index, record, result
+
+        records = iterate_records(path, stats, skip_bad_records)
+        framing_error = None
+        while True:
+            try:
+                index, record = next(records)
+            except StopIteration:
+                break
+            except FrameDecodeError as err:  # corrupt TFRecord: raised after the records before it (file order)
+                framing_error = err
+                break
+            pending.append((index, record, pool.submit(decode, index, record)))
+            if len(pending) > max(1, workers):
+                done = oldest()
+                if done is not None:
+                    yield done
+        while pending:
+            done = oldest()
+            if done is not None:
+                yield done
+        if framing_error is not None:
+            raise framing_error
 
 
 def read_frames(paths, *, laser_names=schema.ALL_LASERS, returns=(1,), inference_only=False, with_pixels=False,

@@ -49,22 +49,22 @@ def _varint(n: int) -> bytes:
 def encode_matrix(array: np.ndarray, compress_level: int = 1) -> bytes:
     """zlib-compressed serialized `MatrixFloat` (float arrays) or `MatrixInt32` (integer arrays).
 
-    Both messages are `data = 1 (packed)`, `shape = 2 (MatrixShape{dims = 1 (packed int32)})`, so the wire format is
-    written directly: byte-identical to the protobuf serializer and ~50x faster than filling a repeated field.
+    Both messages are `data = 1 (packed)`, `shape = 2 (MatrixShape{dims = 1 (int32, unpacked)})`, so the wire format is
+    written directly (byte-identical to the protobuf serializer and ~50x faster than filling a repeated field), and
+    float payloads go to zlib straight from the array's memory.
     """
     array = np.asarray(array)
     if np.issubdtype(array.dtype, np.floating):
-        payload = np.ascontiguousarray(array, dtype="<f4").tobytes()
-        data = b"\x0a" + _varint(len(payload)) + payload if payload else b""
+        payload = memoryview(np.ascontiguousarray(array, dtype="<f4").reshape(-1)).cast("B")
     else:
         values = np.ascontiguousarray(array, dtype=np.int64).ravel()
         payload = b"".join(_varint(int(v) & 0xFFFFFFFFFFFFFFFF) for v in values) if np.any(values) else \
             b"\x00" * values.size  # all zeros: one byte each
-        data = b"\x0a" + _varint(len(payload)) + payload if payload else b""
-    dims = b"".join(_varint(int(d)) for d in array.shape)
-    shape_msg = b"\x0a" + _varint(len(dims)) + dims
-    message = data + b"\x12" + _varint(len(shape_msg)) + shape_msg
-    return zlib.compress(message, compress_level)
+    shape_msg = b"".join(b"\x08" + _varint(int(d)) for d in array.shape)  # proto2 `repeated int32`: unpacked
+    compressor = zlib.compressobj(compress_level)
+    head = b"\x0a" + _varint(len(payload)) if len(payload) else b""
+    return b"".join([compressor.compress(head), compressor.compress(payload),
+                     compressor.compress(b"\x12" + _varint(len(shape_msg)) + shape_msg), compressor.flush()])
 
 
 def encode_transform(matrix: np.ndarray) -> list[float]:

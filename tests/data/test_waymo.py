@@ -145,3 +145,14 @@ def test_truncated_tfrecord_and_skip_option(tiny_segment, tiny_records, tmp_path
     assert [idx for _, idx, _ in frames] == [0, 2]
     assert stats.skipped == 2 and stats.decoded == 2
     assert any("record 3" in e and "tfrecord" in e for e in stats.errors)
+
+
+def test_encode_matrix_is_byte_identical_to_protobuf():
+    # The hand-written wire format must equal what the protobuf serializer writes (packed data, unpacked dims).
+    from waymo_open_dataset import dataset_pb2
+    cases = [(np.random.default_rng(0).normal(size=(3, 5, 4)).astype(np.float32), dataset_pb2.MatrixFloat),
+             (np.zeros((0, 4, 4), np.float32), dataset_pb2.MatrixFloat),
+             (np.array([[1, -2], [0, 300]], np.int32), dataset_pb2.MatrixInt32)]
+    for array, message in cases:
+        expected = message(data=array.ravel().tolist(), shape=dataset_pb2.MatrixShape(dims=array.shape))
+        assert zlib.decompress(encode_matrix(array)) == expected.SerializeToString()
