@@ -146,8 +146,9 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
         for k, v in counts.items():
             totals[k] += v
         if (index + 1) % 10 == 0:
-            _LOG.info("%s: %d frames, %.1f frames/s", os.path.basename(in_path), index + 1,
-                      (index + 1) / (time.time() - t0))
+            elapsed = time.time() - t0
+            _LOG.info("%s: %d frames, %.1f frames/s (%.1f after the first frame)", os.path.basename(in_path),
+                      index + 1, (index + 1) / elapsed, index / max(elapsed - totals["first_frame_seconds"], 1e-9))
 
     # Records decode in parallel (tf.data) while worker threads label and re-encode earlier ones (NumPy and zlib
     # release the GIL). A frame only needs its own record and the previous frame's boxes and pose, so frames are
@@ -175,7 +176,10 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
 
 def run_pipeline(input_files: list[str], out_dir: str, beam_args: list[str] | None = None,
                  laser_names=schema.ALL_LASERS, returns=(1, 2), skip_bad_records: bool = False) -> dict:
-    """Beam pipeline (DirectRunner unless the standard Beam options say otherwise); returns the summed counts."""
+    """Beam pipeline (DirectRunner unless the standard Beam options say otherwise); returns the summed counts.
+
+    `--direct_num_workers=N --direct_running_mode=multi_processing` annotates N segments at once on one machine.
+    """
     import apache_beam as beam
     from apache_beam.options.pipeline_options import PipelineOptions
 
@@ -198,7 +202,10 @@ def run_pipeline(input_files: list[str], out_dir: str, beam_args: list[str] | No
                 out[k] = out.get(k, 0) + v
         return out
 
-    options = PipelineOptions(beam_args or [])
+    beam_args = list(beam_args or [])
+    if not any(a.startswith("--runner") for a in beam_args):
+        beam_args.append("--runner=DirectRunner")  # not Beam's default Prism runner, which downloads a binary
+    options = PipelineOptions(beam_args)
     with beam.Pipeline(options=options) as p:
         (p | "Segments" >> beam.Create(list(input_files))
            | "Reshuffle" >> beam.Reshuffle()

@@ -72,6 +72,10 @@ def test_reproduces_argoverse2_labels():
     objects = cls > 0
     assert objects.sum() > 5000 and (cls == 0).sum() > 50000
     assert np.mean(err[objects] < 0.01) > 0.99  # rigid object points: agree within 1 cm over the sweep
+    # Per class (overlapping cuboids resolved as Argoverse does, see av2.cuboids): vehicles 99.9%, pedestrians 97.8%,
+    # cyclists 100% within 1 cm on this log.
+    for c, share in ((1, 0.995), (2, 0.97), (4, 0.99)):
+        assert (cls == c).sum() > 200 and np.mean(err[cls == c] < 0.01) >= share, c
     assert np.mean(err[cls == 0] < 0.01) > 0.999  # background: ego motion removed on both sides
     assert np.median(err) < 1e-3
 

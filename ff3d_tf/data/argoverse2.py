@@ -64,9 +64,15 @@ def ego_pose(log_dir: str, timestamp_ns: int) -> np.ndarray:
 
 
 def cuboids(log_dir: str, timestamp_ns: int) -> dict:
-    """Boxes dict (`ff3d_tf.annotation` layout) of the cuboids annotated at a sweep, in its ego frame."""
+    """Boxes dict (`ff3d_tf.annotation` layout) of the cuboids annotated at a sweep, in its ego frame.
+
+    In reverse file order: where the enlarged cuboids overlap (a rider and their bicycle, people in a group),
+    Argoverse's labels give a point to the last cuboid of the file and `bootstrap_flow` to the first box, so the
+    reversal makes the two conventions agree (sample log, points within 1 cm of Argoverse's flow: pedestrians 92.7%
+    -> 97.8%, cyclists 91.6% -> 100%).
+    """
     t = _table(os.path.join(log_dir, "annotations.feather"))
-    sel = t["timestamp_ns"] == timestamp_ns
+    sel = np.flatnonzero(t["timestamp_ns"] == timestamp_ns)[::-1]
     cats = t["category"][sel]
     return {
         "center": np.stack([t["tx_m"][sel], t["ty_m"][sel], t["tz_m"][sel]], -1).astype(np.float64),
