@@ -49,6 +49,10 @@ class GridConfig:
                 raise ConfigError(f"grid.{name}={(lo, hi)}: need min < max")
 
 
+ABLATED_CLASSES = {"pedestrian": (2,), "cyclist": (4,), "pedestrian_cyclist": (2, 4)}  # flow class ids
+CLASS_ABLATIONS = ("none",) + tuple(f"{c}_{mode}" for c in ABLATED_CLASSES for mode in ("stationary", "ignored"))
+
+
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
     """Reading WOD records and turning them into model input pairs."""
@@ -63,7 +67,8 @@ class DataConfig:
     cache_decoded: bool = False  # keep decoded pairs in memory (small datasets, e.g. the synthetic default)
     # Point counts are padded up to the next bucket so XLA compiles once per bucket, not once per point count.
     point_bucket_base: int = 16384
-    class_ablation: str = "none"  # none | pedestrian_cyclist_stationary | pedestrian_cyclist_ignored (paper Table 4)
+    # Paper Table 4: none | {pedestrian, cyclist, pedestrian_cyclist}_{stationary, ignored} (training labels only).
+    class_ablation: str = "none"
     max_training_segments: int = 0  # 0 = all; the data-size study sets this
     point_keep_fraction: float = 1.0  # point-density study: random share of points kept per frame
     remove_ground_below_z_m: float | None = None  # ground-removal study: drop points below this z (vehicle frame)
@@ -77,8 +82,8 @@ class DataConfig:
             raise ConfigError("data.max_frame_gap_s must be > 0")
         if self.point_bucket_base < 1:
             raise ConfigError("data.point_bucket_base must be >= 1")
-        if self.class_ablation not in ("none", "pedestrian_cyclist_stationary", "pedestrian_cyclist_ignored"):
-            raise ConfigError(f"data.class_ablation={self.class_ablation!r} unknown")
+        if self.class_ablation not in CLASS_ABLATIONS:
+            raise ConfigError(f"data.class_ablation={self.class_ablation!r} unknown; one of {CLASS_ABLATIONS}")
         if not 0.0 < self.point_keep_fraction <= 1.0:
             raise ConfigError("data.point_keep_fraction must be in (0, 1]")
 
@@ -254,3 +259,11 @@ def load_config(path: str | None = None, overrides: list[str] | tuple[str, ...] 
     except ConfigError as e:
         raise ConfigError(f"{path or '<defaults>'}: {e}") from None
     return cfg.validate()
+
+
+def replace_config(cfg: ExperimentConfig, changes: dict[str, Any]) -> ExperimentConfig:
+    """`cfg` with dotted-key changes (e.g. {"data.point_keep_fraction": 0.5}), type-checked and validated."""
+    tree: dict[str, Any] = {}
+    for key, value in changes.items():
+        _set_dotted(tree, key, value)
+    return _apply(cfg, tree, "").validate()

@@ -1,5 +1,7 @@
-"""Pictures: bird's-eye-view flow images (paper Figure 1 style) and speed histograms, as PNG."""
+"""Pictures: bird's-eye-view flow images (paper Figure 1 style), speed histograms and study plots, as PNG."""
 from __future__ import annotations
+
+import os
 
 import matplotlib
 
@@ -62,7 +64,45 @@ def speed_histogram_png(path: str, speeds_by_class: dict[str, np.ndarray], title
     return _save(fig, path)
 
 
+def lines_png(path: str, panels: dict[str, dict[str, tuple[list, list]]], x_label: str, title: str = "",
+              log_x: bool = True, y_range=(0.0, 1.0)) -> str:
+    """One panel per key (its y label), one line per series {name: (xs, ys)}: e.g. accuracy vs data share."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.6), squeeze=False)
+    for ax, (y_label, series) in zip(axes[0], panels.items()):
+        for name, (xs, ys) in series.items():
+            ax.plot(xs, ys, "o-", label=name)
+        if log_x:
+            ax.set_xscale("log")
+        ax.set_xlabel(x_label)
+        ax.set_ylabel(y_label)
+        if y_range is not None:
+            ax.set_ylim(*y_range)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend()
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path)
+
+
+def grouped_bars_png(path: str, groups: list[str], series: dict[str, list[float]], y_label: str,
+                     title: str = "") -> str:
+    """Bars of each series (e.g. a model variant) side by side over the groups (e.g. metrics)."""
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.5 * len(groups) * len(series) + 3), 3.8))
+    width = 0.8 / max(len(series), 1)
+    for i, (name, values) in enumerate(series.items()):
+        ax.bar(np.arange(len(groups)) + i * width, values, width, label=name)
+    ax.set_xticks(np.arange(len(groups)) + 0.4 - width / 2)
+    ax.set_xticklabels(groups, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel(y_label)
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
+    if title:
+        ax.set_title(title, fontsize=10)
+    return _save(fig, path)
+
+
 def _save(fig, path: str) -> str:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path

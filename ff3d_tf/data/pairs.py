@@ -14,7 +14,7 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import schema
-from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.config import ABLATED_CLASSES, ExperimentConfig
 from ff3d_tf.data import waymo
 
 # Bucket sizes are base * {1, 1.5, 2, 3, 4, 6, 8, 12, ...}: at most 50% padding, ~2 buckets per doubling.
@@ -87,8 +87,9 @@ def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
     d, g = cfg.data, cfg.grid
     cls = ex["class_id_t0"]
     if d.class_ablation != "none":
-        ablated = (cls == schema.CLASS_PEDESTRIAN) | (cls == schema.CLASS_CYCLIST)
-        if d.class_ablation == "pedestrian_cyclist_stationary":  # paper Table 4 "Stationary": background, no motion
+        classes, mode = d.class_ablation.rsplit("_", 1)
+        ablated = tf.reduce_any(cls[:, None] == tf.constant(ABLATED_CLASSES[classes], tf.int32), axis=1)
+        if mode == "stationary":  # paper Table 4 "Stationary": background, no motion
             ex["class_id_t0"] = tf.where(ablated, schema.CLASS_BACKGROUND, cls)
             ex["flow_mps_t0"] = tf.where(ablated[:, None], 0.0, ex["flow_mps_t0"])
         else:  # "Ignored": no target label

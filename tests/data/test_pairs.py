@@ -41,3 +41,40 @@ def test_bucketed_batches(tiny_segment, tiny_config):
     assert np.all(batch["class_id_t0"].numpy()[~mask] == -1)
     assert pairs.bucket_size(1025, 1024) == 1536 and pairs.bucket_size(1, 1024) == 1024
     assert pairs.bucket_size(3000, 1024) == 3072
+
+
+def _frame(xyz, flow, cls, pose):
+    n = len(xyz)
+    return {"points_xyz": tf.constant(xyz, tf.float32), "intensity": tf.zeros([n]), "elongation": tf.zeros([n]),
+            "flow_mps": tf.constant(flow, tf.float32), "class_id": tf.constant(cls, tf.int32),
+            "pose": tf.constant(pose, tf.float64)}
+
+
+def test_study_knobs(tiny_config):
+    from ff3d_tf.config import replace_config
+    # Points: vehicle, pedestrian, cyclist, background on the ground, background 1 m up (all moving but background).
+    xyz = [[1, 0, 1.0], [2, 0, 1.0], [3, 0, 1.0], [4, 0, 0.05], [5, 0, 1.0]]
+    flow = [[5, 0, 0], [1, 0, 0], [3, 0, 0], [0, 0, 0], [0, 0, 0]]
+    cls = [1, 2, 4, 0, 0]
+    pose_tm1, pose_t0 = np.eye(4), np.eye(4)
+    pose_t0[0, 3] = 1.0  # ego moved 1 m forward
+    f_tm1, f_t0 = _frame(xyz, flow, cls, pose_tm1), _frame(xyz, flow, cls, pose_t0)
+
+    def pair(**data):
+        cfg = replace_config(tiny_config, {f"data.{k}": v for k, v in data.items()})
+        return {k: v.numpy() for k, v in pairs.make_pair(f_tm1, f_t0, cfg, tf.constant([1, 2])).items()}
+
+    base = pair()
+    np.testing.assert_allclose(base["points_xyz_tm1_in_t0"][:, 0], np.array(xyz)[:, 0] - 1.0)  # moved into t0
+    np.testing.assert_allclose(pair(ego_motion_compensation=False)["points_xyz_tm1_in_t0"], xyz)
+    ped_stat = pair(class_ablation="pedestrian_stationary")
+    assert ped_stat["class_id_t0"].tolist() == [1, 0, 4, 0, 0] and ped_stat["flow_mps_t0"][1].tolist() == [0, 0, 0]
+    cyc_ign = pair(class_ablation="cyclist_ignored")
+    assert cyc_ign["class_id_t0"].tolist() == [1, 2, -1, 0, 0] and cyc_ign["flow_mps_t0"][2, 0] == 3
+    assert pair(class_ablation="pedestrian_cyclist_stationary")["class_id_t0"].tolist() == [1, 0, 0, 0, 0]
+    no_ground = pair(remove_ground_below_z_m=0.2)
+    assert no_ground["num_points_t0"] == 4 and no_ground["num_points_tm1"] == 4
+    assert no_ground["points_xyz_t0"][:, 2].min() >= 0.2
+    sparse = pair(point_keep_fraction=0.5)  # seeded: the same points on every run
+    assert sparse["num_points_t0"] < 5 and sparse["num_points_tm1"] < 5
+    np.testing.assert_array_equal(sparse["points_xyz_t0"], pair(point_keep_fraction=0.5)["points_xyz_t0"])

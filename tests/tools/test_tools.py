@@ -33,3 +33,23 @@ def test_bad_config_fails_before_work(tmp_path):
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert out.returncode != 0 and "multiple of 8" in out.stderr
     assert not (tmp_path / "m").exists()
+
+
+def test_run_study_ground_removal(tiny_segment, tmp_path):
+    from conftest import TINY_OVERRIDES
+    data_dir = os.path.dirname(tiny_segment)
+    sets = [a for s in TINY_OVERRIDES + ("train.num_steps=2", "train.checkpoint_every_steps=2")
+            for a in ("--set", s)]
+    out = _run("tools/run_study.py", "--study", "ground_removal", "--config", "", "--train_dir", data_dir,
+               "--val_dir", data_dir, "--out_dir", str(tmp_path), "--max_eval_pairs", "1", *sets)
+    assert "change vs with_ground" in out
+    report = json.loads((tmp_path / "ground_removal" / "ground_removal.json").read_text())
+    with_ground, removed = (r["metrics"] for r in report["variants"])
+    # Evaluated on the same pair: removing the ground leaves fewer stationary points to score.
+    assert 0 < removed["all/stationary/count"] < with_ground["all/stationary/count"]
+    assert (tmp_path / "ground_removal" / "ground_removal.png").stat().st_size > 1000
+    # A bad study value fails before any work.
+    bad = subprocess.run([sys.executable, "tools/run_study.py", "--study", "point_density", "--values", "0.5,3",
+                          "--config", "", "--train_dir", data_dir, "--val_dir", data_dir, "--out_dir",
+                          str(tmp_path / "bad")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert bad.returncode != 0 and "shares must be in (0, 1]" in bad.stderr and not (tmp_path / "bad").exists()
