@@ -24,7 +24,7 @@ from ff3d_tf.data import waymo
 from ff3d_tf.data.wod_format import encode_matrix
 
 _LOG = logging.getLogger(__name__)
-ANNOTATION_THREADS = 1  # one labelling thread beside the tf.data decoders: 2 oversubscribe 2 cores (4.7-10.3 fps)
+ANNOTATION_THREADS = 1  # one labelling thread beside the two decoder threads: with 2, runs sometimes halve (5.8 fps)
 COUNT_KEYS = ("frames", "points", "invalid_points", "background", "vehicle", "pedestrian", "sign", "cyclist",
               "no_label_zone_points")
 
@@ -150,9 +150,9 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
             _LOG.info("%s: %d frames, %.1f frames/s (%.1f after the first frame)", os.path.basename(in_path),
                       index + 1, (index + 1) / elapsed, index / max(elapsed - totals["first_frame_seconds"], 1e-9))
 
-    # Records decode in parallel (tf.data) while worker threads label and re-encode earlier ones (NumPy and zlib
-    # release the GIL). A frame only needs its own record and the previous frame's boxes and pose, so frames are
-    # independent; outputs are written in record order.
+    # Records decode on the reader's threads (waymo.decoded_records) while one worker thread labels and re-encodes
+    # earlier ones (NumPy and zlib release the GIL). A frame only needs its own record and the previous frame's boxes
+    # and pose, so frames are independent; outputs are written in record order.
     with tf.io.TFRecordWriter(tmp) as writer, \
             concurrent.futures.ThreadPoolExecutor(ANNOTATION_THREADS) as pool:
         for index, record, decoded in waymo.decoded_records(in_path, decode_options(laser_names, returns),
