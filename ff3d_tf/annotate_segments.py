@@ -153,24 +153,31 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
     # Records decode on the reader's threads (waymo.decoded_records) while one worker thread labels and re-encodes
     # earlier ones (NumPy and zlib release the GIL). A frame only needs its own record and the previous frame's boxes
     # and pose, so frames are independent; outputs are written in record order.
-    with tf.io.TFRecordWriter(tmp) as writer, \
-            concurrent.futures.ThreadPoolExecutor(ANNOTATION_THREADS) as pool:
-        for index, record, decoded in waymo.decoded_records(in_path, decode_options(laser_names, returns),
-                                                            skip_bad_records, stats):
-            if index != last_index + 1:
-                prev = None  # a skipped record in between: this frame has no valid t-1
-            last_index = index
-            frame = dataset_pb2.Frame.FromString(record)
-            boxes = boxes_from_wod_labels(frame.laser_labels)
-            pending.append((index, pool.submit(annotate_frame, frame, decoded, prev, laser_names, returns, boxes)))
-            prev = (boxes, decoded["pose"], decoded["timestamp_micros"])
-            while len(pending) > 2 * ANNOTATION_THREADS:
+    try:
+        with tf.io.TFRecordWriter(tmp) as writer, \
+                concurrent.futures.ThreadPoolExecutor(ANNOTATION_THREADS) as pool:
+            for index, record, decoded in waymo.decoded_records(in_path, decode_options(laser_names, returns),
+                                                                skip_bad_records, stats):
+                if index != last_index + 1:
+                    prev = None  # a skipped record in between: this frame has no valid t-1
+                last_index = index
+                frame = dataset_pb2.Frame.FromString(record)
+                boxes = boxes_from_wod_labels(frame.laser_labels)
+                pending.append((index, pool.submit(annotate_frame, frame, decoded, prev, laser_names, returns,
+                                                   boxes)))
+                prev = (boxes, decoded["pose"], decoded["timestamp_micros"])
+                while len(pending) > 2 * ANNOTATION_THREADS:
+                    finish_oldest(writer)
+            while pending:
                 finish_oldest(writer)
-        while pending:
-            finish_oldest(writer)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)  # nothing half-written is left to be mistaken for output
+        raise
     totals["skipped_records"] = stats.skipped
     os.replace(tmp, out_path)
     totals["seconds"] = time.time() - t0
+    totals.setdefault("first_frame_seconds", totals["seconds"])  # no frame at all
     return totals
 
 

@@ -133,3 +133,26 @@ def test_points_in_boxes_matches_brute_force():
     with pytest.raises(ValueError, match="non-finite"):
         bad = dict(boxes, heading=np.r_[np.nan, boxes["heading"][1:]])
         points_in_boxes(pts, bad)
+
+
+def test_annotate_segment_bad_record(tiny_records, tmp_path):
+    import tensorflow as tf
+    from ff3d_tf.annotate_segments import annotate_segment
+    path = str(tmp_path / "mixed.tfrecord")
+    with tf.io.TFRecordWriter(path) as w:
+        for record in (tiny_records[0], tiny_records[1], b"not a frame", tiny_records[2], tiny_records[3]):
+            w.write(record)
+    out = str(tmp_path / "out" / "mixed.tfrecord")
+    with pytest.raises(waymo.FrameDecodeError, match="mixed.tfrecord: record 2"):
+        annotate_segment(path, out, returns=(1,))
+    assert not os.path.exists(out) and not os.path.exists(out + ".partial")
+    counts = annotate_segment(path, out, returns=(1,), skip_bad_records=True)
+    assert counts["frames"] == 4 and counts["skipped_records"] == 1
+    frames = [f for _, _, f in waymo.read_frames(out)]
+    orig = [waymo.decode_frame(r) for r in tiny_records]
+    np.testing.assert_array_equal(frames[1]["class_id"], orig[1]["class_id"])  # t-1 = record 0: as the simulator
+    # Record 3 follows the skipped one: no valid t-1, so its object points are unlabelled (-1), background stays 0.
+    objects = orig[2]["class_id"] > 0
+    assert objects.sum() > 0 and np.all(frames[2]["class_id"][objects] == -1)
+    np.testing.assert_array_equal(frames[2]["class_id"][orig[2]["class_id"] == 0], 0)
+    np.testing.assert_array_equal(frames[3]["class_id"], orig[3]["class_id"])  # its t-1 (record 3) was read
