@@ -12,6 +12,7 @@ import collections
 import concurrent.futures
 import ctypes
 import functools
+import json
 import logging
 import os
 import time
@@ -125,11 +126,12 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
     keep_freed_memory()
     totals = dict.fromkeys(COUNT_KEYS, 0)
     totals["skipped_records"] = 0
-    if os.path.exists(out_path):
+    gfile = tf.io.gfile  # local paths and gs:// alike (Beam workers on a cloud runner)
+    if gfile.exists(out_path):
         _LOG.info("exists, skipped: %s", out_path)
         totals["already_done"] = 1
         return totals
-    os.makedirs(os.path.dirname(os.path.abspath(out_path)), exist_ok=True)
+    gfile.makedirs(os.path.dirname(out_path) or ".")
     tmp = out_path + ".partial"
     prev = None
     t0 = time.time()
@@ -171,11 +173,11 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
             while pending:
                 finish_oldest(writer)
     except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)  # nothing half-written is left to be mistaken for output
+        if gfile.exists(tmp):
+            gfile.remove(tmp)  # nothing half-written is left to be mistaken for output
         raise
     totals["skipped_records"] = stats.skipped
-    os.replace(tmp, out_path)
+    gfile.rename(tmp, out_path, overwrite=True)
     totals["seconds"] = time.time() - t0
     totals.setdefault("first_frame_seconds", totals["seconds"])  # no frame at all
     return totals
@@ -188,10 +190,11 @@ def run_pipeline(input_files: list[str], out_dir: str, beam_args: list[str] | No
     `--direct_num_workers=N --direct_running_mode=multi_processing` annotates N segments at once on one machine.
     """
     import apache_beam as beam
+    import tensorflow as tf
     from apache_beam.options.pipeline_options import PipelineOptions
 
     result_path = os.path.join(out_dir, "annotation_counts.json")
-    os.makedirs(out_dir, exist_ok=True)
+    tf.io.gfile.makedirs(out_dir)
 
     class AnnotateSegment(beam.DoFn):
         def process(self, path):
@@ -220,13 +223,12 @@ def run_pipeline(input_files: list[str], out_dir: str, beam_args: list[str] | No
            | "Sum" >> beam.combiners.ToList()
            | "Merge" >> beam.Map(merge)
            | "Write" >> beam.Map(_write_json, result_path))
-    import json
-    with open(result_path) as f:
+    with tf.io.gfile.GFile(result_path) as f:
         return json.load(f)
 
 
 def _write_json(obj, path):
-    import json
-    with open(path, "w") as f:
+    import tensorflow as tf
+    with tf.io.gfile.GFile(path, "w") as f:
         json.dump(obj, f, indent=1, sort_keys=True)
     return path

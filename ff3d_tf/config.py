@@ -172,9 +172,10 @@ class ExperimentConfig:
         return dataclasses.asdict(self)
 
     def save(self, path: str) -> None:
-        """Writes the resolved config (YAML) next to checkpoints and results."""
-        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-        with open(path, "w") as f:
+        """Writes the resolved config (YAML) next to checkpoints and results (local or any tf.io.gfile path)."""
+        import tensorflow as tf  # only here: loading and validating configs stays free of TensorFlow
+        tf.io.gfile.makedirs(os.path.dirname(path) or ".")
+        with tf.io.gfile.GFile(path, "w") as f:
             yaml.safe_dump(json.loads(json.dumps(self.to_dict())), f, sort_keys=False)
 
 

@@ -66,11 +66,11 @@ def evaluate(cfg: ExperimentConfig, files: list[str], model=None, saved_model=No
 
 
 def write_results(out_dir: str, result: dict, zero: dict, cfg: ExperimentConfig) -> None:
-    os.makedirs(out_dir, exist_ok=True)
+    tf.io.gfile.makedirs(out_dir)
     for name, r in (("metrics.json", result), ("metrics_zero_flow.json", zero)):
-        with open(os.path.join(out_dir, name), "w") as f:
+        with tf.io.gfile.GFile(os.path.join(out_dir, name), "w") as f:
             json.dump(r, f, indent=1, sort_keys=True)
-    with open(os.path.join(out_dir, "metrics.csv"), "w") as f:
+    with tf.io.gfile.GFile(os.path.join(out_dir, "metrics.csv"), "w") as f:
         f.write("metric,model,zero_flow\n")
         for k in sorted(result):
             f.write(f"{k},{result[k]:.6g},{zero[k]:.6g}\n")

@@ -153,7 +153,7 @@ class Trainer:
     def train(self, num_steps: int | None = None) -> dict:
         cfg = self.cfg
         num_steps = cfg.train.num_steps if num_steps is None else num_steps
-        os.makedirs(self.model_dir, exist_ok=True)
+        tf.io.gfile.makedirs(self.model_dir)  # local or gs:// alike
         cfg.save(os.path.join(self.model_dir, "config.yaml"))
         if self.manager.latest_checkpoint:
             self.checkpoint.restore(self.manager.latest_checkpoint)
@@ -223,7 +223,7 @@ class Trainer:
         if self.manager.latest_checkpoint is None or not self.manager.latest_checkpoint.endswith(f"-{step}"):
             self.manager.save(checkpoint_number=step)
         self.log(f"finished {step - start_step} steps in {time.time() - t_start:.1f} s")
-        with open(os.path.join(self.model_dir, "train_history.json"), "w") as f:
+        with tf.io.gfile.GFile(os.path.join(self.model_dir, "train_history.json"), "w") as f:
             json.dump({"loss": history}, f)
         return {"step": step, "loss": loss_value, "interrupted": False}
 
@@ -266,7 +266,7 @@ def restore_model(cfg: ExperimentConfig, checkpoint_path: str):
     """A model from a checkpoint file prefix or a model_dir (its latest checkpoint)."""
     model = build_model(cfg)
     path = checkpoint_path
-    if os.path.isdir(path):
+    if tf.io.gfile.isdir(path):
         path = tf.train.latest_checkpoint(os.path.join(path, "checkpoints")) or tf.train.latest_checkpoint(path)
         if path is None:
             raise FileNotFoundError(f"no checkpoint under {checkpoint_path}")

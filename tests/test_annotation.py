@@ -87,13 +87,17 @@ def test_model_example_from_argoverse2(tiny_config):
     assert (ex["class_id_t0"] == 1).sum() > 100
 
 
-@pytest.mark.parametrize("returns", ["1"])
-def test_annotate_tool_beam(tiny_segment, tmp_path, returns):
+@pytest.mark.parametrize("out_root", ["local", "ram://"])
+def test_annotate_tool_beam(tiny_segment, tmp_path, out_root):
     from ff3d_tf.annotate_segments import run_pipeline
-    # Strip the labels, re-create them with the Beam pipeline, and read them back through the normal reader.
-    counts = run_pipeline([tiny_segment], str(tmp_path / "out"), ["--runner=DirectRunner"], returns=(1,))
+    # Re-create the labels with the Beam pipeline and read them back through the normal reader. A `ram://` output
+    # stands in for a cloud filesystem (gs://): every file operation goes through tf.io.gfile.
+    out_dir = str(tmp_path / "out") if out_root == "local" else f"ram://{tmp_path}/out"
+    counts = run_pipeline([tiny_segment], out_dir, ["--runner=DirectRunner"], returns=(1,))
     assert counts["frames"] == 4 and counts["vehicle"] > 0
-    out = str(tmp_path / "out" / os.path.basename(tiny_segment))
+    out = os.path.join(out_dir, os.path.basename(tiny_segment))
+    from ff3d_tf.data.pairs import list_segment_files
+    assert list_segment_files(out_dir) == [out]
     for (_, _, ours), (_, _, orig) in zip(waymo.read_frames(out), waymo.read_frames(tiny_segment)):
         np.testing.assert_array_equal(ours["class_id"], orig["class_id"])
         np.testing.assert_allclose(ours["flow_mps"], orig["flow_mps"], atol=1e-3)

@@ -17,13 +17,20 @@ def _weights(trainer):
     return [v.numpy().copy() for v in trainer.model.trainable_variables]
 
 
-def test_two_steps_change_weights_and_write_config(tiny_segment, tiny_config, tmp_path):
-    t = Trainer(_cfg(tiny_config), str(tmp_path / "m"), [tiny_segment], log_fn=lambda s: None)
+@pytest.mark.parametrize("root", ["local", "ram://"])
+def test_two_steps_change_weights_and_write_config(tiny_segment, tiny_config, tmp_path, root):
+    from ff3d_tf.training import restore_model
+    # `ram://` stands in for a cloud model_dir (gs://): checkpoints, config and history go through tf.io.gfile.
+    model_dir = str(tmp_path / "m") if root == "local" else f"ram://{tmp_path}/m"
+    t = Trainer(_cfg(tiny_config), model_dir, [tiny_segment], log_fn=lambda s: None)
     before = _weights(t)
     out = t.train(2)
     assert out["step"] == 2 and np.isfinite(out["loss"])
     assert any(not np.allclose(a, b) for a, b in zip(before, _weights(t)))
-    assert (tmp_path / "m" / "config.yaml").exists()
+    assert tf.io.gfile.exists(f"{model_dir}/config.yaml") and tf.io.gfile.exists(f"{model_dir}/train_history.json")
+    restored = restore_model(tiny_config, model_dir)
+    for a, b in zip(_weights(t), [v.numpy() for v in restored.trainable_variables]):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_resume_equals_uninterrupted(tiny_segment, tiny_config, tmp_path):

@@ -21,7 +21,8 @@ def main():
     cfg = _common.load(args)
     files = list_segment_files(args.data_dir)
     model = saved = None
-    if os.path.exists(os.path.join(args.checkpoint, "saved_model.pb")):
+    import tensorflow as tf
+    if tf.io.gfile.exists(os.path.join(args.checkpoint, "saved_model.pb")):
         from ff3d_tf.export import SavedModelPredictor
         saved = SavedModelPredictor(args.checkpoint)
     else:
@@ -34,7 +35,8 @@ def main():
     print()
     print(M.format_paper_table(zero, "zero-flow baseline (for context)"))
     print(M.format_extra_tables(zero))
-    out_dir = args.out_dir or (args.checkpoint if os.path.isdir(args.checkpoint) else os.path.dirname(args.checkpoint))
+    out_dir = args.out_dir or (args.checkpoint if tf.io.gfile.isdir(args.checkpoint) else
+                               os.path.dirname(args.checkpoint))
     write_results(out_dir, result, zero, cfg)
     print(f"wrote {out_dir}/metrics.json, metrics_zero_flow.json, metrics.csv")
 

@@ -41,7 +41,7 @@ def main():
     args = p.parse_args()
     cfg = _common.load(args)
     os.makedirs(args.out_dir, exist_ok=True)
-    if os.path.exists(os.path.join(args.checkpoint, "saved_model.pb")):
+    if tf.io.gfile.exists(os.path.join(args.checkpoint, "saved_model.pb")):
         from ff3d_tf.export import SavedModelPredictor
         saved = SavedModelPredictor(args.checkpoint)
 

@@ -7,7 +7,6 @@ Batches are padded to point-count buckets (see `bucket_size`) so that XLA compil
 """
 from __future__ import annotations
 
-import glob
 import os
 
 import numpy as np
@@ -33,11 +32,13 @@ def _bucket_size_tf(n, base: int):
 
 
 def list_segment_files(data_dir_or_glob: str) -> list[str]:
-    """TFRecord files of a directory (sorted) or a glob."""
-    if os.path.isdir(data_dir_or_glob):
-        files = sorted(glob.glob(os.path.join(data_dir_or_glob, "*.tfrecord*")))
-    else:
-        files = sorted(glob.glob(data_dir_or_glob))
+    """TFRecord files of a directory (sorted) or a glob, local or on any `tf.io.gfile` filesystem (gs://, ...).
+
+    Unfinished outputs of the writers (`*.partial`) are never listed.
+    """
+    gfile = tf.io.gfile
+    pattern = os.path.join(data_dir_or_glob, "*.tfrecord*") if gfile.isdir(data_dir_or_glob) else data_dir_or_glob
+    files = sorted(f for f in gfile.glob(pattern) if not f.endswith(".partial"))
     if not files:
         raise FileNotFoundError(f"no TFRecord files at {data_dir_or_glob} (expected *.tfrecord)")
     return files
