@@ -1,7 +1,9 @@
 """Bootstrap scene-flow labels from tracked boxes for WOD segments (paper Sec. 3), as an Apache Beam pipeline.
 
 python tools/annotate_flow.py --input 'segments/*.tfrecord' --out_dir labelled/ [beam options, e.g. --runner ...]
-Needs the `beam` extra (pip install -e '.[beam]'; `make install` includes it).
+Needs the `beam` extra (pip install -e '.[beam]'; `make install` includes it). One Beam element per segment; outputs
+that exist are skipped, so a rerun resumes. On a cloud runner pass gs:// paths and the standard options, e.g.
+--runner=DataflowRunner --project P --region R --temp_location gs://B/tmp --setup_file ./setup.py
 """
 import argparse
 import logging
