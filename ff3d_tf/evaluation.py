@@ -40,14 +40,16 @@ def evaluate(cfg: ExperimentConfig, files: list[str], model=None, saved_model=No
     ds = pairs.pair_dataset(files, cfg)
     if max_pairs:
         ds = ds.take(max_pairs)
+    # One pipeline: every pair padded to its bucket (batch of 1), prefetched while the model runs.
+    ds = pairs.batch_examples(ds, 1, cfg.data.point_bucket_base).prefetch(2)
     predict = predict_function(model, cfg.model.jit_compile) if model is not None else None
     t0, done = time.time(), 0
-    for ex in ds:
+    for batch in ds:
+        n, n_tm1 = int(batch["num_points_t0"][0]), int(batch["num_points_tm1"][0])
+        ex = {k: v[0, :n] if k in pairs.T0_POINT_KEYS else v[0, :n_tm1] if k in pairs.TM1_POINT_KEYS else v[0]
+              for k, v in batch.items()}  # the unpadded example
         if predict is not None:
-            batch = next(iter(pairs.batch_examples(tf.data.Dataset.from_tensors(ex), 1,
-                                                   cfg.data.point_bucket_base)))
             out = predict(model_inputs(batch))
-            n = int(ex["num_points_t0"])
             flow_pred, valid = out["flow_mps"][0, :n], out["point_valid"][0, :n]
         else:
             exn = {k: v.numpy() for k, v in ex.items()}

@@ -58,23 +58,24 @@ class SceneFlowMetrics(keras.metrics.Metric):
         speed_true = tf.norm(flow_true, axis=-1)
         speed_pred = tf.norm(flow_pred, axis=-1)
         moving = speed_true >= self.moving_threshold_mps
-        keep_f = tf.cast(keep, tf.float64)
-        onehot = tf.one_hot(cls, 5, dtype=tf.float64) * keep_f[:, None]  # [N, 5]
-        subset = tf.stack([tf.ones_like(keep_f), tf.cast(moving, tf.float64), 1.0 - tf.cast(moving, tf.float64)],
-                          -1)  # [N, 3]
+        # Sums per cell through segment ids (dropped points get id -1, which unsorted_segment_sum drops): no
+        # [N, cells] one-hot arrays.
+        moving_i = tf.cast(moving, tf.int32)
         stats = tf.stack([err, tf.ones_like(err), tf.cast(err <= 0.1, tf.float64), tf.cast(err <= 1.0, tf.float64)],
                          -1)  # [N, 4]
-        self.cells.assign_add(tf.einsum("nc,ns,nk->csk", onehot, subset, stats))
+        by_motion = tf.reshape(tf.math.unsorted_segment_sum(stats, tf.where(keep, cls * 2 + moving_i, -1), 10),
+                               [5, 2, 4])  # [class, (stationary, moving), stat]
+        self.cells.assign_add(tf.stack([by_motion[:, 0] + by_motion[:, 1], by_motion[:, 1], by_motion[:, 0]], 1))
         pred_moving = tf.cast(speed_pred >= self.moving_threshold_mps, tf.float64)
         true_moving = tf.cast(moving, tf.float64)
-        self.moving_cls.assign_add(tf.einsum("nc,nk->ck", onehot,
-                                             tf.stack([pred_moving * true_moving, pred_moving, true_moving], -1)))
+        self.moving_cls.assign_add(tf.math.unsorted_segment_sum(
+            tf.stack([pred_moving * true_moving, pred_moving, true_moving], -1), tf.where(keep, cls, -1), 5))
         speed_m = speed_true * SECONDS_PER_FRAME
         bucket = tf.clip_by_value(tf.searchsorted(tf.constant(BUCKET_EDGES_M[1:]), speed_m[None, :],
                                                   side="right")[0], 0, NUM_BUCKETS - 1)
-        onehot_b = tf.one_hot(bucket, NUM_BUCKETS, dtype=tf.float64)
         vals = tf.stack([err * SECONDS_PER_FRAME, speed_m, tf.ones_like(err)], -1)
-        self.buckets.assign_add(tf.einsum("nc,nb,nk->cbk", onehot, onehot_b, vals))
+        self.buckets.assign_add(tf.reshape(tf.math.unsorted_segment_sum(
+            vals, tf.where(keep, cls * NUM_BUCKETS + bucket, -1), 5 * NUM_BUCKETS), [5, NUM_BUCKETS, 3]))
 
     def reset_state(self):
         for v in (self.cells, self.moving_cls, self.buckets):
