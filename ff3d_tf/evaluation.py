@@ -40,15 +40,11 @@ def evaluate(cfg: ExperimentConfig, files: list[str], model=None, saved_model=No
     ds = pairs.pair_dataset(files, cfg)
     if max_pairs:
         ds = ds.take(max_pairs)
-    # One pipeline: every pair padded to its bucket (batch of 1), prefetched while the model runs.
-    ds = pairs.batch_examples(ds, 1, cfg.data.point_bucket_base).prefetch(2)
     predict = predict_function(model, cfg.model.jit_compile) if model is not None else None
     t0, done = time.time(), 0
-    for batch in ds:
-        n, n_tm1 = int(batch["num_points_t0"][0]), int(batch["num_points_tm1"][0])
-        ex = {k: v[0, :n] if k in pairs.T0_POINT_KEYS else v[0, :n_tm1] if k in pairs.TM1_POINT_KEYS else v[0]
-              for k, v in batch.items()}  # the unpadded example
+    for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base):
         if predict is not None:
+            n = int(ex["num_points_t0"])
             out = predict(model_inputs(batch))
             flow_pred, valid = out["flow_mps"][0, :n], out["point_valid"][0, :n]
         else:

@@ -14,11 +14,10 @@ from ff3d_tf.data import pairs, waymo
 from ff3d_tf.evaluation import raw_tm1_points
 
 
-def _examples(args, cfg):
+def _examples(args, cfg) -> tf.data.Dataset:
     if args.av2_log:
         from ff3d_tf.data import argoverse2
-        yield argoverse2.model_example(args.av2_log, cfg)
-        return
+        return tf.data.Dataset.from_tensors(argoverse2.model_example(args.av2_log, cfg))
     first = next(waymo.iterate_records(args.input))[1]
     try:
         waymo.decode_frame(first, laser_names=cfg.data.laser_names, source=args.input)
@@ -26,8 +25,7 @@ def _examples(args, cfg):
     except waymo.MissingFlowLabelsError:
         inference_only = True
         print(f"{args.input}: no flow labels; predicting without ground truth", flush=True)
-    for ex in pairs.pair_dataset([args.input], cfg, inference_only=inference_only):
-        yield {k: v.numpy() for k, v in ex.items()}
+    return pairs.pair_dataset([args.input], cfg, inference_only=inference_only)
 
 
 def main():
@@ -45,7 +43,7 @@ def main():
         from ff3d_tf.export import SavedModelPredictor
         saved = SavedModelPredictor(args.checkpoint)
 
-        def run(ex):
+        def run(batch, ex):
             pts0 = np.concatenate([ex["points_xyz_t0"], ex["point_features_t0"]], -1)
             out = saved(raw_tm1_points(ex), pts0, ex["pose_tm1"], ex["pose_t0"])
             return out["flow_mps"].numpy(), out["point_valid"].numpy()
@@ -54,16 +52,15 @@ def main():
         model = restore_model(cfg, args.checkpoint)
         predict = predict_function(model, cfg.model.jit_compile)
 
-        def run(ex):
-            batch = next(iter(pairs.batch_examples(tf.data.Dataset.from_tensors(ex), 1,
-                                                   cfg.data.point_bucket_base)))
+        def run(batch, ex):
             out = predict(model_inputs(batch))
             n = int(ex["num_points_t0"])
             return out["flow_mps"][0, :n].numpy(), out["point_valid"][0, :n].numpy()
 
     n = 0
-    for i, ex in enumerate(_examples(args, cfg)):
-        flow, valid = run(ex)
+    for i, (batch, ex) in enumerate(pairs.padded_singletons(_examples(args, cfg), cfg.data.point_bucket_base)):
+        ex = {k: v.numpy() for k, v in ex.items()}
+        flow, valid = run(batch, ex)
         has_labels = bool(np.any(ex["class_id_t0"] >= 0))
         name = f"frame_{i:04d}"
         np.savez_compressed(os.path.join(args.out_dir, name + ".npz"), points_xyz_t0=ex["points_xyz_t0"],

@@ -156,6 +156,15 @@ def pair_dataset(files: list[str], cfg: ExperimentConfig, *, inference_only: boo
                                num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 
+def padded_singletons(ds: tf.data.Dataset, bucket_base: int):
+    """(batch of one example padded to its bucket, the same example unpadded) for each example of `ds`: inference
+    input without a tf.data pipeline per example."""
+    for batch in batch_examples(ds, 1, bucket_base).prefetch(2):
+        n, n_tm1 = int(batch["num_points_t0"][0]), int(batch["num_points_tm1"][0])
+        yield batch, {k: v[0, :n] if k in T0_POINT_KEYS else v[0, :n_tm1] if k in TM1_POINT_KEYS else v[0]
+                      for k, v in batch.items() if not k.startswith("point_mask_")}
+
+
 def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_remainder: bool = False):
     """Pads point arrays to a common bucketed size and adds `point_mask_t0` / `point_mask_tm1`."""
     ds = ds.padded_batch(batch_size, drop_remainder=drop_remainder)

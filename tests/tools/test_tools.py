@@ -53,3 +53,22 @@ def test_run_study_ground_removal(tiny_segment, tmp_path):
                           "--config", "", "--train_dir", data_dir, "--val_dir", data_dir, "--out_dir",
                           str(tmp_path / "bad")], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert bad.returncode != 0 and "shares must be in (0, 1]" in bad.stderr and not (tmp_path / "bad").exists()
+
+
+def test_predict_from_checkpoint_on_wod_and_av2(tiny_segment, tiny_config, tmp_path):
+    import dataclasses
+
+    import numpy as np
+    from conftest import AV2_LOG, TINY_OVERRIDES
+    from ff3d_tf.training import Trainer
+    cfg = dataclasses.replace(tiny_config, train=dataclasses.replace(tiny_config.train, eval_every_steps=0))
+    Trainer(cfg, str(tmp_path / "m"), [tiny_segment], log_fn=lambda s: None).train(1)
+    sets = [a for s in TINY_OVERRIDES for a in ("--set", s)]
+    for source, out in ((["--input", tiny_segment], "wod"), (["--av2_log", AV2_LOG], "av2")):
+        _run("tools/predict.py", "--config", "", "--checkpoint", str(tmp_path / "m"), *source, "--out_dir",
+             str(tmp_path / out), *sets)
+        pred = np.load(tmp_path / out / "frame_0000.npz")
+        n = len(pred["points_xyz_t0"])
+        assert pred["flow_mps_pred"].shape == (n, 3) and pred["point_valid"].sum() > 0.5 * n
+        assert (tmp_path / out / "frame_0000_bev.png").stat().st_size > 10000
+    assert len(list((tmp_path / "wod").glob("frame_*.npz"))) == 3  # 4 frames -> 3 pairs
