@@ -7,11 +7,12 @@ that exist are skipped, so a rerun resumes. On a cloud runner pass gs:// paths a
 """
 import argparse
 import logging
+import sys
 import time
 
 import _common  # noqa: F401
 
-from ff3d_tf.annotate_segments import run_pipeline
+from ff3d_tf.annotate_segments import decode_options, run_pipeline
 from ff3d_tf.data.pairs import list_segment_files
 
 
@@ -23,11 +24,15 @@ def main():
     p.add_argument("--skip_bad_records", action="store_true")
     args, beam_args = p.parse_known_args()
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    files = list_segment_files(args.input)
+    try:  # bad arguments fail before any work
+        returns = tuple(int(r) for r in args.returns.split(","))
+        decode_options(returns=returns)
+        files = list_segment_files(args.input)
+    except (ValueError, FileNotFoundError) as e:
+        sys.exit(f"annotate_flow: {e}")
     print(f"annotating {len(files)} segments -> {args.out_dir}", flush=True)
     t0 = time.time()
-    counts = run_pipeline(files, args.out_dir, beam_args, returns=tuple(int(r) for r in args.returns.split(",")),
-                          skip_bad_records=args.skip_bad_records)
+    counts = run_pipeline(files, args.out_dir, beam_args, returns=returns, skip_bad_records=args.skip_bad_records)
     el = time.time() - t0
     print(f"done in {el:.1f} s ({counts.get('frames', 0) / max(el, 1e-9):.2f} frames/s end to end): {counts}")
 

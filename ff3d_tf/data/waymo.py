@@ -57,6 +57,12 @@ class DecodeOptions:
     # width of each decoded range image, sorted by laser then return): what label writers need.
     with_pixels: bool = False
 
+    def __post_init__(self):
+        if not self.laser_names or not set(self.laser_names) <= set(schema.ALL_LASERS):
+            raise ValueError(f"laser names {self.laser_names}: each must be one of {schema.ALL_LASERS} (TOP..REAR)")
+        if not self.returns or not set(self.returns) <= {1, 2}:
+            raise ValueError(f"returns {self.returns}: each must be 1 or 2")
+
 
 def _op_name(kind: str, field: str) -> str:
     """Op names carry the field, so a codec error names it: `zlib__lasers_TOP_.ri_return1.range_image_compressed`."""

@@ -72,3 +72,11 @@ def test_predict_from_checkpoint_on_wod_and_av2(tiny_segment, tiny_config, tmp_p
         assert pred["flow_mps_pred"].shape == (n, 3) and pred["point_valid"].sum() > 0.5 * n
         assert (tmp_path / out / "frame_0000_bev.png").stat().st_size > 10000
     assert len(list((tmp_path / "wod").glob("frame_*.npz"))) == 3  # 4 frames -> 3 pairs
+
+
+def test_annotate_flow_bad_arguments_fail_before_work(tiny_segment, tmp_path):
+    out = subprocess.run([sys.executable, "tools/annotate_flow.py", "--input", tiny_segment, "--out_dir",
+                          str(tmp_path / "o"), "--returns", "3"], cwd=ROOT, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode != 0 and "returns (3,): each must be 1 or 2" in out.stderr
+    assert not (tmp_path / "o").exists()
