@@ -416,10 +416,15 @@ def iterate_records(path: str, stats: ReadStats | None = None, skip_bad_records:
 
 
 def frames_dataset(path: str, options: DecodeOptions = DecodeOptions()) -> tf.data.Dataset:
-    """(record_index, record, decoded frame) of one file, decoded in graph in parallel, in file order."""
+    """(record_index, record, decoded frame) of one file, decoded in graph in parallel, in file order.
+
+    The map calls the decoder traced once per process (`_decoder`), so building the dataset costs no tracing.
+    """
+    decoder = _decoder(options)
+
     def decode(index, record):
         source = tf.strings.join([path, " record ", tf.strings.as_string(index)])
-        return index, record, decode_frame_tensors(record, source, options)
+        return index, record, decoder(record, source)
 
     records = tf.data.TFRecordDataset(path).enumerate()
     return records.map(decode, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
