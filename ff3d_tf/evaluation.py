@@ -42,22 +42,25 @@ def evaluate(cfg: ExperimentConfig, files: list[str], model=None, saved_model=No
         ds = ds.take(max_pairs)
     predict = predict_function(model, cfg.model.jit_compile) if model is not None else None
     t0, done = time.time(), 0
-    for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base):
-        if predict is not None:
-            n = int(ex["num_points_t0"])
-            out = predict(model_inputs(batch))
-            flow_pred, valid = out["flow_mps"][0, :n], out["point_valid"][0, :n]
-        else:
-            exn = {k: v.numpy() for k, v in ex.items()}
-            points_t0 = np.concatenate([exn["points_xyz_t0"], exn["point_features_t0"]], -1)
-            out = saved_model(raw_tm1_points(exn), points_t0, exn["pose_tm1"], exn["pose_t0"])
-            flow_pred, valid = out["flow_mps"], out["point_valid"]
-        metric.update_state(ex["flow_mps_t0"], flow_pred, ex["class_id_t0"], point_valid=valid)
-        zero.update_state(ex["flow_mps_t0"], tf.zeros_like(ex["flow_mps_t0"]), ex["class_id_t0"], point_valid=valid)
-        done += 1
-        if done % 5 == 0 or done == total:
-            rate = done / max(time.time() - t0, 1e-9)
-            log_fn(f"eval {done}/{total} pairs {rate:.2f} pairs/s ETA {max(total - done, 0) / max(rate, 1e-9):.0f}s")
+    with pairs.input_errors_named(files):  # a bad record: FrameDecodeError naming file, record and field
+        for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base):
+            if predict is not None:
+                n = int(ex["num_points_t0"])
+                out = predict(model_inputs(batch))
+                flow_pred, valid = out["flow_mps"][0, :n], out["point_valid"][0, :n]
+            else:
+                exn = {k: v.numpy() for k, v in ex.items()}
+                points_t0 = np.concatenate([exn["points_xyz_t0"], exn["point_features_t0"]], -1)
+                out = saved_model(raw_tm1_points(exn), points_t0, exn["pose_tm1"], exn["pose_t0"])
+                flow_pred, valid = out["flow_mps"], out["point_valid"]
+            metric.update_state(ex["flow_mps_t0"], flow_pred, ex["class_id_t0"], point_valid=valid)
+            zero.update_state(ex["flow_mps_t0"], tf.zeros_like(ex["flow_mps_t0"]), ex["class_id_t0"],
+                              point_valid=valid)
+            done += 1
+            if done % 5 == 0 or done == total:
+                rate = done / max(time.time() - t0, 1e-9)
+                log_fn(f"eval {done}/{total} pairs {rate:.2f} pairs/s "
+                       f"ETA {max(total - done, 0) / max(rate, 1e-9):.0f}s")
     if done == 0:
         raise ValueError(f"no frame pairs in {files}")
     return metric.result(), zero.result()

@@ -184,7 +184,8 @@ class Trainer:
         history = []
         try:
             while int(self.step.numpy()) < num_steps:
-                loss = self._train_step(iterator)
+                with pairs.input_errors_named(self.train_files):  # a bad record stops here, before any weight update
+                    loss = self._train_step(iterator)
                 step = int(self.step.numpy())
                 loss_value = float(loss.numpy())
                 if int(self.nonfinite_in_row.numpy()) >= cfg.train.max_nonfinite_steps_in_row:

@@ -64,3 +64,25 @@ def test_nonfinite_steps_are_skipped_then_stop(tiny_segment, tiny_config, tmp_pa
     assert int(t.nonfinite_total.numpy()) == 2
     for a, b in zip(before, _weights(t)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_bad_record_stops_training_with_its_name_or_is_skipped(tiny_records, tiny_config, tmp_path):
+    from waymo_open_dataset import dataset_pb2
+
+    from ff3d_tf.data.waymo import FrameDecodeError
+    from ff3d_tf.data.wod_format import encode_matrix
+    frame = dataset_pb2.Frame.FromString(tiny_records[1])
+    image = np.full((24, 72, 4), 5.0, np.float32)
+    image[3, 4, 1] = np.nan
+    next(la for la in frame.lasers if la.name == 4).ri_return1.range_image_compressed = encode_matrix(image)
+    path = str(tmp_path / "bad.tfrecord")
+    with tf.io.TFRecordWriter(path) as w:
+        for record in (tiny_records[0], frame.SerializeToString(), tiny_records[2], tiny_records[3]):
+            w.write(record)
+    t = Trainer(_cfg(tiny_config), str(tmp_path / "m"), [path], log_fn=lambda s: None)
+    with pytest.raises(FrameDecodeError, match=r"bad.tfrecord: record 1: field lasers\[SIDE_RIGHT\].ri_return1"):
+        t.train(2)
+    assert int(t.step.numpy()) < 2  # the step whose batch hit the bad record never ran
+    skip = dataclasses.replace(tiny_config, data=dataclasses.replace(tiny_config.data, skip_bad_records=True))
+    out = Trainer(_cfg(skip), str(tmp_path / "s"), [path], log_fn=lambda s: None).train(2)
+    assert out["step"] == 2 and np.isfinite(out["loss"])

@@ -7,6 +7,7 @@ Batches are padded to point-count buckets (see `bucket_size`) so that XLA compil
 """
 from __future__ import annotations
 
+import contextlib
 import os
 
 import numpy as np
@@ -112,16 +113,26 @@ def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
     return _keep(ex, keep_t0, keep_tm1)
 
 
+@contextlib.contextmanager
+def input_errors_named(files: list[str]):
+    """Turns a decoding error of the input pipeline over `files` into a FrameDecodeError (`waymo.pipeline_error`);
+    any other error passes unchanged."""
+    try:
+        yield
+    except tf.errors.OpError as err:
+        bad = waymo.pipeline_error(err, list(files))
+        if bad is None:
+            raise
+        raise bad from None
+
+
 def _frames_dataset(path: str, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool):
-    def with_count(index, record, frame):
-        del index, record
+    def with_count(index, frame):
+        del index
         frame["num_points"] = tf.shape(frame["points_xyz"])[0]
         return frame
 
-    frames = waymo.frames_dataset(path, decode_options(cfg, inference_only)).map(with_count)
-    if skip_bad_records:
-        frames = frames.ignore_errors(log_warning=True)
-    return frames
+    return waymo.frames_dataset(path, decode_options(cfg, inference_only), skip_bad_records).map(with_count)
 
 
 def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool):

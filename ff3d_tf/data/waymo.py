@@ -35,7 +35,8 @@ class FrameDecodeError(ValueError):
 
     def __init__(self, path: str, record_index: int, field: str, reason: str):
         self.path, self.record_index, self.field, self.reason = path, record_index, field, reason
-        super().__init__(f"{path}: record {record_index}: field {field}: {reason}")
+        record = f"record {record_index}" if record_index >= 0 else "record unknown"
+        super().__init__(f"{path}: {record}: field {field}: {reason}")
 
 
 class MissingFlowLabelsError(FrameDecodeError):
@@ -415,19 +416,46 @@ def iterate_records(path: str, stats: ReadStats | None = None, skip_bad_records:
         index += 1
 
 
-def frames_dataset(path: str, options: DecodeOptions = DecodeOptions()) -> tf.data.Dataset:
-    """(record_index, record, decoded frame) of one file, decoded in graph in parallel, in file order.
+def frames_dataset(path: str, options: DecodeOptions = DecodeOptions(), skip_bad_records: bool = False
+                   ) -> tf.data.Dataset:
+    """(record_index, decoded frame) of one file, decoded in graph in parallel, in file order.
 
-    The map calls the decoder traced once per process (`_decoder`), so building the dataset costs no tracing.
+    A bad record raises from the iterator (see `pipeline_error` for a FrameDecodeError), or with `skip_bad_records`
+    is dropped with a warning (a truncated file ends there). The map calls the decoder traced once per process
+    (`_decoder`): building the dataset costs no tracing.
     """
     decoder = _decoder(options)
 
     def decode(index, record):
-        source = tf.strings.join([path, " record ", tf.strings.as_string(index)])
-        return index, record, decoder(record, source)
+        return index, decoder(record, tf.strings.join([path, " record ", tf.strings.as_string(index)]))
 
-    records = tf.data.TFRecordDataset(path).enumerate()
-    return records.map(decode, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+    records = tf.data.TFRecordDataset(path)
+    if skip_bad_records:
+        records = records.ignore_errors(log_warning=True)
+    frames = records.enumerate().map(decode, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+    return frames.ignore_errors(log_warning=True) if skip_bad_records else frames
+
+
+def pipeline_error(err: tf.errors.OpError, files: list[str]) -> FrameDecodeError | None:
+    """A FrameDecodeError for an input-pipeline error raised by the decoder of `frames_dataset`, or None if the
+    error did not come from decoding.
+
+    The decoder's own checks carry the record's source, so those name file, record and field. A codec failure (a
+    record that is not a Frame, corrupt zlib, a truncated file) names its field but not its record: the error says
+    how to find it.
+    """
+    if "user-defined function" not in err.message and "DataLoss" not in type(err).__name__:
+        return None
+    field, reason = _field_from_op_error(err)
+    source = re.search(_ERROR_TAG + r".*?source:\]? \[?(.*?) record (\d+)\]?", err.message, re.S)
+    hint = " (data.skip_bad_records=true skips bad records)"
+    if source:
+        cls = MissingFlowLabelsError if reason.startswith("MISSING_FLOW") else FrameDecodeError
+        return cls(source.group(1).strip(), int(source.group(2)), field, reason.replace("MISSING_FLOW ", "") + hint)
+    where = files[0] if len(files) == 1 else f"one of {len(files)} files ({files[0]}, ...)"
+    reason = "cannot decode: " + err.message.strip().splitlines()[0].split(": ")[-1][:200]
+    return FrameDecodeError(where, -1, field, reason + hint + "; `python tools/dataset_stats.py --data_dir ...` "
+                            "reads the same files and names the bad record")
 
 
 def decoded_records(path: str, options: DecodeOptions = DecodeOptions(), skip_bad_records: bool = False,
