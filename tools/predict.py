@@ -57,8 +57,12 @@ def main():
             n = int(ex["num_points_t0"])
             return out["flow_mps"][0, :n].numpy(), out["point_valid"][0, :n].numpy()
 
+    def examples():  # a bad record in --input: FrameDecodeError naming file, record and field
+        with pairs.input_errors_named([args.input or args.av2_log]):
+            yield from pairs.padded_singletons(_examples(args, cfg), cfg.data.point_bucket_base)
+
     n = 0
-    for i, (batch, ex) in enumerate(pairs.padded_singletons(_examples(args, cfg), cfg.data.point_bucket_base)):
+    for i, (batch, ex) in enumerate(examples()):
         ex = {k: v.numpy() for k, v in ex.items()}
         flow, valid = run(batch, ex)
         has_labels = bool(np.any(ex["class_id_t0"] >= 0))
