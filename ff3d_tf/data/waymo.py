@@ -453,7 +453,10 @@ def pipeline_error(err: tf.errors.OpError, files: list[str]) -> FrameDecodeError
         cls = MissingFlowLabelsError if reason.startswith("MISSING_FLOW") else FrameDecodeError
         return cls(source.group(1).strip(), int(source.group(2)), field, reason.replace("MISSING_FLOW ", "") + hint)
     where = files[0] if len(files) == 1 else f"one of {len(files)} files ({files[0]}, ...)"
-    reason = "cannot decode: " + err.message.strip().splitlines()[0].split(": ")[-1][:200]
+    if "user-defined function" not in err.message:
+        field = "tfrecord"  # raised by the TFRecord reader: a corrupt or truncated file
+    first_line = re.sub(r"\{\{[^}]*\}\}|\[Op:[^\]]*\]|name:\s*$", "", err.message.strip().splitlines()[0]).strip()
+    reason = "cannot decode: " + first_line.split(": ")[-1][:200]
     return FrameDecodeError(where, -1, field, reason + hint + "; `python tools/dataset_stats.py --data_dir ...` "
                             "reads the same files and names the bad record")
 

@@ -78,3 +78,23 @@ def test_study_knobs(tiny_config):
     sparse = pair(point_keep_fraction=0.5)  # seeded: the same points on every run
     assert sparse["num_points_t0"] < 5 and sparse["num_points_tm1"] < 5
     np.testing.assert_array_equal(sparse["points_xyz_t0"], pair(point_keep_fraction=0.5)["points_xyz_t0"])
+
+
+def test_input_pipeline_names_bad_input(tiny_records, tiny_config, tmp_path):
+    import pytest
+    garbage, truncated = str(tmp_path / "garbage.tfrecord"), str(tmp_path / "truncated.tfrecord")
+    for path, middle in ((garbage, b"not a frame"), (truncated, None)):
+        with tf.io.TFRecordWriter(path) as w:
+            for record in (tiny_records[0], middle or tiny_records[1], tiny_records[2]):
+                w.write(record)
+    with open(truncated, "r+b") as f:
+        f.truncate(f.seek(0, 2) - 100)
+    for path, field in ((garbage, "field Frame"), (truncated, "field tfrecord")):
+        with pytest.raises(waymo.FrameDecodeError, match=f"{path}: record unknown: {field}: cannot decode"):
+            with pairs.input_errors_named([path]):
+                list(pairs.pair_dataset([path], tiny_config))
+    # Skipping: the garbage record leaves frames 0 and 2 (0.2 s apart: no pair); the truncated file ends after 2.
+    from ff3d_tf.config import replace_config
+    skip = replace_config(tiny_config, {"data.skip_bad_records": True})
+    assert len(list(pairs.pair_dataset([garbage], skip))) == 0
+    assert len(list(pairs.pair_dataset([truncated], skip))) == 1
