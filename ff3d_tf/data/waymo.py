@@ -450,8 +450,8 @@ def pipeline_error(err: tf.errors.OpError, files: list[str]) -> FrameDecodeError
     source = re.search(_ERROR_TAG + r".*?source:\]? \[?(.*?) record (\d+)\]?", err.message, re.S)
     hint = " (data.skip_bad_records=true skips bad records)"
     if source:
-        cls = MissingFlowLabelsError if reason.startswith("MISSING_FLOW") else FrameDecodeError
-        return cls(source.group(1).strip(), int(source.group(2)), field, reason.replace("MISSING_FLOW ", "") + hint)
+        error = _decode_error(source.group(1).strip(), int(source.group(2)), err)
+        return type(error)(error.path, error.record_index, error.field, error.reason + hint)
     where = files[0] if len(files) == 1 else f"one of {len(files)} files ({files[0]}, ...)"
     if "user-defined function" not in err.message:
         field = "tfrecord"  # raised by the TFRecord reader: a corrupt or truncated file
