@@ -12,8 +12,7 @@ import tensorflow as tf  # noqa: E402
 _cpus = tf.config.list_physical_devices("CPU")
 tf.config.set_logical_device_configuration(_cpus[0], [tf.config.LogicalDeviceConfiguration()] * 2)
 
-SHARED = os.path.join(os.path.dirname(ROOT), "shared")
-AV2_LOG = os.path.join(SHARED, "data", "av2_sample_log")
+AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")  # in-tree fixture (see data/README.md)
 TINY_SCALE = 0.12  # range images ~8 x 318 (TOP) and 24 x 72 (short-range)
 
 

@@ -12,7 +12,7 @@ import time
 
 import _common  # noqa: F401
 
-from ff3d_tf.annotate_segments import decode_options, run_pipeline
+from ff3d_tf.labels.pipeline import decode_options, run_pipeline
 from ff3d_tf.data.pairs import list_segment_files
 
 

@@ -14,8 +14,8 @@ import time
 
 import _common  # noqa: F401
 
-from ff3d_tf import annotate_segments
-from ff3d_tf.annotation import boxes_from_wod_labels
+from ff3d_tf.labels import pipeline as annotate_segments
+from ff3d_tf.labels.box_flow import boxes_from_wod_labels
 from ff3d_tf.data import synthetic, waymo
 
 

@@ -6,9 +6,10 @@ import os
 
 import _common
 
-from ff3d_tf import metrics as M
+from ff3d_tf.training import metrics as M
 from ff3d_tf.data.pairs import list_segment_files
-from ff3d_tf.evaluation import evaluate, write_results
+from ff3d_tf.inference.predictor import load_predictor
+from ff3d_tf.training.evaluation import evaluate, write_results
 
 
 def main():
@@ -20,21 +21,15 @@ def main():
     args = p.parse_args()
     cfg = _common.load(args)
     files = list_segment_files(args.data_dir)
-    model = saved = None
-    import tensorflow as tf
-    if tf.io.gfile.exists(os.path.join(args.checkpoint, "saved_model.pb")):
-        from ff3d_tf.export import SavedModelPredictor
-        saved = SavedModelPredictor(args.checkpoint)
-    else:
-        from ff3d_tf.training import restore_model
-        model = restore_model(cfg, args.checkpoint)
-    result, zero = evaluate(cfg, files, model=model, saved_model=saved, max_pairs=args.max_pairs,
+    predictor = load_predictor(cfg, args.checkpoint)
+    result, zero = evaluate(cfg, files, predictor, max_pairs=args.max_pairs,
                             log_fn=lambda s: print(s, flush=True))
     print(M.format_paper_table(result, "FastFlow3D (this checkpoint), mean L2 error"))
     print(M.format_extra_tables(result))
     print()
     print(M.format_paper_table(zero, "zero-flow baseline (for context)"))
     print(M.format_extra_tables(zero))
+    import tensorflow as tf
     out_dir = args.out_dir or (args.checkpoint if tf.io.gfile.isdir(args.checkpoint) else
                                os.path.dirname(args.checkpoint))
     write_results(out_dir, result, zero, cfg)

@@ -1,8 +1,8 @@
 """Export a checkpoint as a SavedModel for serving: python tools/export.py --config C --checkpoint M --out DIR"""
 import _common
 
-from ff3d_tf.export import export_saved_model
-from ff3d_tf.training import restore_model
+from ff3d_tf.inference.saved_model import export_saved_model
+from ff3d_tf.inference.predictor import restore_model
 
 
 def main():

@@ -1,7 +1,7 @@
 """Run a SavedModel or checkpoint over a WOD TFRecord (or an Argoverse 2 log): per-frame flows (.npz) and BEV PNGs.
 
 python tools/predict.py --config C --checkpoint M --input SEGMENT.tfrecord --out_dir O [--png_every 10]
-python tools/predict.py --config C --checkpoint M --av2_log ../shared/data/av2_sample_log --out_dir O
+python tools/predict.py --config C --checkpoint M --av2_log data/av2_sample_log --out_dir O
 """
 import os
 
@@ -11,7 +11,7 @@ import tensorflow as tf
 
 from ff3d_tf import viz
 from ff3d_tf.data import pairs, waymo
-from ff3d_tf.evaluation import raw_tm1_points
+from ff3d_tf.inference.predictor import load_predictor
 
 
 def _examples(args, cfg) -> tf.data.Dataset:
@@ -39,23 +39,7 @@ def main():
     args = p.parse_args()
     cfg = _common.load(args)
     os.makedirs(args.out_dir, exist_ok=True)
-    if tf.io.gfile.exists(os.path.join(args.checkpoint, "saved_model.pb")):
-        from ff3d_tf.export import SavedModelPredictor
-        saved = SavedModelPredictor(args.checkpoint)
-
-        def run(batch, ex):
-            pts0 = np.concatenate([ex["points_xyz_t0"], ex["point_features_t0"]], -1)
-            out = saved(raw_tm1_points(ex), pts0, ex["pose_tm1"], ex["pose_t0"])
-            return out["flow_mps"].numpy(), out["point_valid"].numpy()
-    else:
-        from ff3d_tf.training import model_inputs, predict_function, restore_model
-        model = restore_model(cfg, args.checkpoint)
-        predict = predict_function(model, cfg.model.jit_compile)
-
-        def run(batch, ex):
-            out = predict(model_inputs(batch))
-            n = int(ex["num_points_t0"])
-            return out["flow_mps"][0, :n].numpy(), out["point_valid"][0, :n].numpy()
+    predictor = load_predictor(cfg, args.checkpoint)
 
     def examples():  # a bad record in --input: FrameDecodeError naming file, record and field
         with pairs.input_errors_named([args.input or args.av2_log]):
@@ -64,7 +48,7 @@ def main():
     n = 0
     for i, (batch, ex) in enumerate(examples()):
         ex = {k: v.numpy() for k, v in ex.items()}
-        flow, valid = run(batch, ex)
+        flow, valid = predictor.predict(batch, ex)
         has_labels = bool(np.any(ex["class_id_t0"] >= 0))
         name = f"frame_{i:04d}"
         np.savez_compressed(os.path.join(args.out_dir, name + ".npz"), points_xyz_t0=ex["points_xyz_t0"],

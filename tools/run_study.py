@@ -15,7 +15,7 @@ import time
 
 import _common
 
-from ff3d_tf import studies
+from ff3d_tf.training import studies
 from ff3d_tf.config import ConfigError, load_config
 from ff3d_tf.data.pairs import list_segment_files
 

@@ -2,7 +2,7 @@
 import _common
 
 from ff3d_tf.data.pairs import list_segment_files
-from ff3d_tf.training import Trainer
+from ff3d_tf.training.trainer import Trainer
 
 
 def main():

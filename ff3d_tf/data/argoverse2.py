@@ -64,7 +64,7 @@ def ego_pose(log_dir: str, timestamp_ns: int) -> np.ndarray:
 
 
 def cuboids(log_dir: str, timestamp_ns: int) -> dict:
-    """Boxes dict (`ff3d_tf.annotation` layout) of the cuboids annotated at a sweep, in its ego frame.
+    """Boxes dict (`ff3d_tf.labels.box_flow` layout) of the cuboids annotated at a sweep, in its ego frame.
 
     In reverse file order: where the enlarged cuboids overlap (a rider and their bicycle, people in a group),
     Argoverse's labels give a point to the last cuboid of the file and `bootstrap_flow` to the first box, so the
@@ -103,7 +103,7 @@ def read_sweep(log_dir: str, timestamp_ns: int) -> dict:
 
 def labelled_pair(log_dir: str, index: int = 1) -> tuple[dict, dict]:
     """(frame t-1, frame t0) for sweeps index-1 and index, the t0 frame labelled by `bootstrap_flow` (paper convention)."""
-    from ff3d_tf.annotation import bootstrap_flow
+    from ff3d_tf.labels.box_flow import bootstrap_flow
     stamps = sweep_timestamps(log_dir)
     ts_tm1, ts_t0 = stamps[index - 1], stamps[index]
     f_tm1, f_t0 = read_sweep(log_dir, ts_tm1), read_sweep(log_dir, ts_t0)

@@ -1,7 +1,7 @@
 """WOD v1 format facts shared by the reader and the writers: proto descriptors, matrix encoding, polar geometry.
 
 Sources: `waymo_open_dataset/dataset.proto` (field layout), the official `range_image_utils` conversion (geometry
-conventions, restated in ../shared/WAYMO_FORMAT.md). Nothing here is copied; the conventions are re-derived below.
+conventions). Nothing here is copied; the conventions are re-derived below.
 """
 from __future__ import annotations
 

@@ -60,7 +60,7 @@ def test_predict_from_checkpoint_on_wod_and_av2(tiny_segment, tiny_config, tmp_p
 
     import numpy as np
     from conftest import AV2_LOG, TINY_OVERRIDES
-    from ff3d_tf.training import Trainer
+    from ff3d_tf.training.trainer import Trainer
     cfg = dataclasses.replace(tiny_config, train=dataclasses.replace(tiny_config.train, eval_every_steps=0))
     Trainer(cfg, str(tmp_path / "m"), [tiny_segment], log_fn=lambda s: None).train(1)
     sets = [a for s in TINY_OVERRIDES for a in ("--set", s)]

@@ -1,7 +1,7 @@
 """Bootstrap scene-flow labels for whole WOD segments (paper Sec. 3), as an Apache Beam pipeline.
 
 One Beam element per segment file: its frames are read in order, every selected lidar/return gets flow from the
-frame's `laser_labels` and the previous frame's (`ff3d_tf.annotation.bootstrap_flow`), and the frames are written
+frame's `laser_labels` and the previous frame's (`ff3d_tf.labels.box_flow.bootstrap_flow`), and the frames are written
 again with `range_image_flow_compressed` filled in the release's format ([H,W,4]: vx, vy, vz in m/s, class), so the
 reader and training take them unchanged. Points in no-label zones (range image channel 3 > 0) get class -1; pixels
 without a return hold zeros and class -1. The first frame of a segment has no t-1 boxes: its object points get class -1.
@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from ff3d_tf import schema
-from ff3d_tf.annotation import boxes_from_wod_labels, bootstrap_flow
+from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow
 from ff3d_tf.data import waymo
 from ff3d_tf.data.wod_format import encode_matrix
 

@@ -20,10 +20,10 @@ import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
-from ff3d_tf.losses import per_sample_flow_loss
-from ff3d_tf.metrics import SceneFlowMetrics
+from ff3d_tf.training.losses import per_sample_flow_loss
+from ff3d_tf.training.metrics import SceneFlowMetrics
+from ff3d_tf.inference.predictor import compiled_forward, model_inputs
 from ff3d_tf.model import build_model
-from ff3d_tf.model.fastflow3d import INPUT_KEYS
 
 _LOG = logging.getLogger(__name__)
 
@@ -41,10 +41,6 @@ def make_strategy() -> tf.distribute.Strategy:
     cpus = tf.config.list_logical_devices("CPU")
     return tf.distribute.MirroredStrategy([d.name for d in cpus]) if len(cpus) > 1 else \
         tf.distribute.OneDeviceStrategy("/cpu:0")
-
-
-def model_inputs(batch: dict) -> dict:
-    return {k: batch[k] for k in INPUT_KEYS}
 
 
 def learning_rate_schedule(cfg: ExperimentConfig):
@@ -233,7 +229,7 @@ class Trainer:
         cfg = self.cfg
         metric = SceneFlowMetrics()
         ds = pairs.batch_examples(pairs.pair_dataset(self.val_files, cfg), 1, cfg.data.point_bucket_base)
-        predict = predict_function(self.model, cfg.model.jit_compile)
+        predict = compiled_forward(self.model, cfg.model.jit_compile)
         for batch in ds.take(cfg.train.eval_num_batches):
             out = predict(model_inputs(batch))
             metric.update_state(batch["flow_mps_t0"], out["flow_mps"], batch["class_id_t0"],
@@ -249,27 +245,3 @@ class Trainer:
         self.log(f"eval@{step}: all/moving {result['all/moving/mean_l2_mps']:.3f} m/s, all/stationary "
                  f"{result['all/stationary/mean_l2_mps']:.3f} m/s")
         return result
-
-
-_PREDICT_FNS: dict = {}
-
-
-def predict_function(model, jit_compile: bool = True):
-    """A compiled inference function of a model (cached per model)."""
-    key = (id(model), jit_compile)
-    if key not in _PREDICT_FNS:
-        _PREDICT_FNS[key] = tf.function(lambda inputs: model(inputs, training=False), jit_compile=jit_compile,
-                                        reduce_retracing=True)
-    return _PREDICT_FNS[key]
-
-
-def restore_model(cfg: ExperimentConfig, checkpoint_path: str):
-    """A model from a checkpoint file prefix or a model_dir (its latest checkpoint)."""
-    model = build_model(cfg)
-    path = checkpoint_path
-    if tf.io.gfile.isdir(path):
-        path = tf.train.latest_checkpoint(os.path.join(path, "checkpoints")) or tf.train.latest_checkpoint(path)
-        if path is None:
-            raise FileNotFoundError(f"no checkpoint under {checkpoint_path}")
-    tf.train.Checkpoint(model=model).restore(path).expect_partial()
-    return model

@@ -2,7 +2,7 @@
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf.metrics import SceneFlowMetrics, format_paper_table
+from ff3d_tf.training.metrics import SceneFlowMetrics, format_paper_table
 
 NAMES = ["background", "vehicle", "pedestrian", "sign", "cyclist"]
 

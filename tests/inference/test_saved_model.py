@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
-from ff3d_tf.export import SavedModelPredictor, export_saved_model
+from ff3d_tf.inference.saved_model import SavedModelPredictor, export_saved_model
 from ff3d_tf.model import build_model
 
 

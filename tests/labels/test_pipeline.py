@@ -6,7 +6,7 @@ import pytest
 from waymo_open_dataset import dataset_pb2
 
 from conftest import AV2_LOG
-from ff3d_tf.annotation import boxes_from_wod_labels, bootstrap_flow
+from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow
 from ff3d_tf.data import waymo
 
 
@@ -60,7 +60,7 @@ def test_matches_simulator_labels(tiny_records):
 
 def test_reproduces_argoverse2_labels():
     from ff3d_tf.data import argoverse2 as av2
-    assert os.path.isdir(AV2_LOG), f"the shared Argoverse 2 sample is missing at {AV2_LOG}"
+    assert os.path.isdir(AV2_LOG), f"the in-tree Argoverse 2 sample is missing at {AV2_LOG}"
     stamps = av2.sweep_timestamps(AV2_LOG)
     f0, f1 = av2.read_sweep(AV2_LOG, stamps[0]), av2.read_sweep(AV2_LOG, stamps[1])
     dt = (stamps[1] - stamps[0]) * 1e-9
@@ -89,7 +89,7 @@ def test_model_example_from_argoverse2(tiny_config):
 
 @pytest.mark.parametrize("out_root", ["local", "ram://"])
 def test_annotate_tool_beam(tiny_segment, tmp_path, out_root):
-    from ff3d_tf.annotate_segments import run_pipeline
+    from ff3d_tf.labels.pipeline import run_pipeline
     # Re-create the labels with the Beam pipeline and read them back through the normal reader. A `ram://` output
     # stands in for a cloud filesystem (gs://): every file operation goes through tf.io.gfile.
     out_dir = str(tmp_path / "out") if out_root == "local" else f"ram://{tmp_path}/out"
@@ -106,7 +106,7 @@ def test_annotate_tool_beam(tiny_segment, tmp_path, out_root):
 
 
 def test_points_in_boxes_matches_brute_force():
-    from ff3d_tf.annotation import points_in_boxes
+    from ff3d_tf.labels.box_flow import points_in_boxes
     rng = np.random.default_rng(3)
     k = 40
     boxes = {"center": np.c_[rng.uniform(-20, 20, (k, 2)), rng.uniform(0, 2, k)],
@@ -141,7 +141,7 @@ def test_points_in_boxes_matches_brute_force():
 
 def test_annotate_segment_bad_record(tiny_records, tmp_path):
     import tensorflow as tf
-    from ff3d_tf.annotate_segments import annotate_segment
+    from ff3d_tf.labels.pipeline import annotate_segment
     path = str(tmp_path / "mixed.tfrecord")
     with tf.io.TFRecordWriter(path) as w:
         for record in (tiny_records[0], tiny_records[1], b"not a frame", tiny_records[2], tiny_records[3]):

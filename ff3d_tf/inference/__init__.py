@@ -1,0 +1,1 @@
+"""Inference and serving: restoring a model (checkpoint or SavedModel), the compiled forward, SavedModel export."""
