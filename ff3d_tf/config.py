@@ -12,6 +12,8 @@ from typing import Any
 
 import yaml
 
+from ff3d_tf import schema
+
 
 class ConfigError(ValueError):
     """A configuration that cannot work; raised before any data is read or any step runs."""
@@ -49,7 +51,8 @@ class GridConfig:
                 raise ConfigError(f"grid.{name}={(lo, hi)}: need min < max")
 
 
-ABLATED_CLASSES = {"pedestrian": (2,), "cyclist": (4,), "pedestrian_cyclist": (2, 4)}  # flow class ids
+ABLATED_CLASSES = {"pedestrian": (schema.CLASS_PEDESTRIAN,), "cyclist": (schema.CLASS_CYCLIST,),
+                   "pedestrian_cyclist": (schema.CLASS_PEDESTRIAN, schema.CLASS_CYCLIST)}  # flow class ids
 CLASS_ABLATIONS = ("none",) + tuple(f"{c}_{mode}" for c in ABLATED_CLASSES for mode in ("stationary", "ignored"))
 
 
@@ -57,7 +60,7 @@ CLASS_ABLATIONS = ("none",) + tuple(f"{c}_{mode}" for c in ABLATED_CLASSES for m
 class DataConfig:
     """Reading WOD records and turning them into model input pairs."""
 
-    laser_names: tuple[int, ...] = (1, 2, 3, 4, 5)  # TOP, FRONT, SIDE_LEFT, SIDE_RIGHT, REAR
+    laser_names: tuple[int, ...] = schema.ALL_LASERS  # TOP, FRONT, SIDE_LEFT, SIDE_RIGHT, REAR
     returns: tuple[int, ...] = (1,)  # 1 = first return, 2 = second return
     max_frame_gap_s: float = 0.15  # pairs further apart are skipped (WOD frames are ~0.1 s apart)
     ego_motion_compensation: bool = True  # move the t-1 cloud into the t0 vehicle frame (paper appendix)
@@ -74,7 +77,7 @@ class DataConfig:
     remove_ground_below_z_m: float | None = None  # ground-removal study: drop points below this z (vehicle frame)
 
     def validate(self) -> None:
-        if not self.laser_names or any(n not in (1, 2, 3, 4, 5) for n in self.laser_names):
+        if not self.laser_names or any(n not in schema.ALL_LASERS for n in self.laser_names):
             raise ConfigError(f"data.laser_names={self.laser_names}: each must be 1..5 (TOP..REAR)")
         if not self.returns or any(r not in (1, 2) for r in self.returns):
             raise ConfigError(f"data.returns={self.returns}: each must be 1 or 2")

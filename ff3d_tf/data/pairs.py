@@ -77,8 +77,8 @@ def make_pair(frame_tm1: dict, frame_t0: dict, cfg: ExperimentConfig, seed=None)
     return ex
 
 
-T0_POINT_KEYS = ("points_xyz_t0", "point_features_t0", "flow_mps_t0", "class_id_t0")
-TM1_POINT_KEYS = ("points_xyz_tm1_in_t0", "point_features_tm1")
+T0_POINT_KEYS = schema.PAIR_T0_POINT_KEYS
+TM1_POINT_KEYS = schema.PAIR_TM1_POINT_KEYS
 
 
 def _keep(ex: dict, keep_t0, keep_tm1) -> dict:

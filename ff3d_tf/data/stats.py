@@ -5,8 +5,7 @@ import numpy as np
 
 from ff3d_tf import schema
 
-MOVING_THRESHOLD_MPS = 0.1  # the figure's threshold
-STAT_CLASSES = (1, 2, 4, 3)  # vehicles, pedestrians, cyclists, signs
+STAT_CLASSES = (schema.CLASS_VEHICLE, schema.CLASS_PEDESTRIAN, schema.CLASS_CYCLIST, schema.CLASS_SIGN)  # figure order
 
 
 class FlowStats:
@@ -30,7 +29,7 @@ class FlowStats:
         speed = np.linalg.norm(flow_mps, axis=1)
         for c in STAT_CLASSES:
             sel = class_id == c
-            moving = sel & (speed >= MOVING_THRESHOLD_MPS)
+            moving = sel & (speed >= schema.STATS_MOVING_THRESHOLD_MPS)
             self.counts[c][0] += int(moving.sum())
             self.counts[c][1] += int((sel & ~moving).sum())
             if sum(len(s) for s in self.speeds[c]) < self._cap:

@@ -8,8 +8,6 @@ without a return hold zeros and class -1. The first frame of a segment has no t-
 """
 from __future__ import annotations
 
-import collections
-import concurrent.futures
 import ctypes
 import functools
 import json
@@ -23,19 +21,20 @@ from ff3d_tf import schema
 from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow
 from ff3d_tf.data import waymo
 from ff3d_tf.data.wod_format import encode_matrix
+from ff3d_tf.parallel import ordered_map
 
 _LOG = logging.getLogger(__name__)
-ANNOTATION_THREADS = 1  # one labelling thread beside the two decoder threads: with 2, runs sometimes halve (5.8 fps)
-COUNT_KEYS = ("frames", "points", "invalid_points", "background", "vehicle", "pedestrian", "sign", "cyclist",
-              "no_label_zone_points")
+ANNOTATION_THREADS = 1  # one labelling thread beside the two decoder threads (2 measured slower on 2 cores)
+COUNT_KEYS = (("frames", "points", "invalid_points") + tuple(schema.CLASS_NAMES[c] for c in sorted(schema.CLASS_NAMES))
+              + ("no_label_zone_points",))
 
 
 def keep_freed_memory() -> bool:
     """Asks glibc to serve arrays up to 32 MB from its heap and to keep freed memory (mallopt); returns success.
 
     Labelling allocates and frees arrays of several MB per frame; by default glibc maps and unmaps each one, and the
-    page faults cost about 40% of the labelling time (bootstrap_flow on a 361K-point frame: 27 -> 16 ms). The cost is
-    that the process keeps its peak heap. Process-wide and idempotent; a no-op off glibc.
+    page faults then dominate the labelling time (measured: benchmarks/annotation_cpu.json). The cost is that the
+    process keeps its peak heap. Process-wide and idempotent; a no-op off glibc.
     """
     try:
         libc = ctypes.CDLL("libc.so.6")
@@ -113,6 +112,27 @@ def _empty_flow_image(height: int, width: int) -> bytes:
     return encode_matrix(_empty_flow_array(height, width))
 
 
+def _frames_to_label(in_path: str, options: waymo.DecodeOptions, skip_bad_records: bool, stats: waymo.ReadStats):
+    """(index, Frame, decoded, boxes, prev) per decoded record, in file order; `prev` is the previous frame's
+    (boxes, pose, timestamp), or None after a skipped record (that frame has no valid t-1)."""
+    from waymo_open_dataset import dataset_pb2
+    prev, last_index = None, -1
+    for index, record, decoded in waymo.decoded_records(in_path, options, skip_bad_records, stats):
+        if index != last_index + 1:
+            prev = None
+        last_index = index
+        frame = dataset_pb2.Frame.FromString(record)
+        boxes = boxes_from_wod_labels(frame.laser_labels)
+        yield index, frame, decoded, boxes, prev
+        prev = (boxes, decoded["pose"], decoded["timestamp_micros"])
+
+
+def _log_progress(in_path: str, frames_done: int, t0: float, first_frame_seconds: float) -> None:
+    elapsed = time.time() - t0
+    _LOG.info("%s: %d frames, %.1f frames/s (%.1f after the first frame)", os.path.basename(in_path), frames_done,
+              frames_done / elapsed, (frames_done - 1) / max(elapsed - first_frame_seconds, 1e-9))
+
+
 def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS, returns=(1, 2),
                      skip_bad_records: bool = False) -> dict:
     """Annotates one segment file into `out_path` (written atomically; an existing output is kept: resumable).
@@ -121,7 +141,6 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
     the first segment of a process, and the pipeline filling).
     """
     import tensorflow as tf
-    from waymo_open_dataset import dataset_pb2
 
     keep_freed_memory()
     totals = dict.fromkeys(COUNT_KEYS, 0)
@@ -133,45 +152,27 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
         return totals
     gfile.makedirs(os.path.dirname(out_path) or ".")
     tmp = out_path + ".partial"
-    prev = None
     t0 = time.time()
     stats = waymo.ReadStats()
-    last_index = -1
-    pending: collections.deque = collections.deque()
 
-    def finish_oldest(writer):
-        index, future = pending.popleft()
-        data, counts = future.result()
-        writer.write(data)
-        if "first_frame_seconds" not in totals:
-            totals["first_frame_seconds"] = time.time() - t0
-        for k, v in counts.items():
-            totals[k] += v
-        if (index + 1) % 10 == 0:
-            elapsed = time.time() - t0
-            _LOG.info("%s: %d frames, %.1f frames/s (%.1f after the first frame)", os.path.basename(in_path),
-                      index + 1, (index + 1) / elapsed, index / max(elapsed - totals["first_frame_seconds"], 1e-9))
+    def label(item):
+        _, frame, decoded, boxes, prev = item
+        return annotate_frame(frame, decoded, prev, laser_names, returns, boxes)
 
-    # Records decode on the reader's threads (waymo.decoded_records) while one worker thread labels and re-encodes
-    # earlier ones (NumPy and zlib release the GIL). A frame only needs its own record and the previous frame's boxes
-    # and pose, so frames are independent; outputs are written in record order.
+    # Records decode on the reader's threads while one worker thread labels and re-encodes earlier ones (NumPy and
+    # zlib release the GIL). A frame needs only its own record and the previous frame's boxes and pose, so frames
+    # are independent; outputs are written in record order.
+    items = _frames_to_label(in_path, decode_options(laser_names, returns), skip_bad_records, stats)
     try:
-        with tf.io.TFRecordWriter(tmp) as writer, \
-                concurrent.futures.ThreadPoolExecutor(ANNOTATION_THREADS) as pool:
-            for index, record, decoded in waymo.decoded_records(in_path, decode_options(laser_names, returns),
-                                                                skip_bad_records, stats):
-                if index != last_index + 1:
-                    prev = None  # a skipped record in between: this frame has no valid t-1
-                last_index = index
-                frame = dataset_pb2.Frame.FromString(record)
-                boxes = boxes_from_wod_labels(frame.laser_labels)
-                pending.append((index, pool.submit(annotate_frame, frame, decoded, prev, laser_names, returns,
-                                                   boxes)))
-                prev = (boxes, decoded["pose"], decoded["timestamp_micros"])
-                while len(pending) > 2 * ANNOTATION_THREADS:
-                    finish_oldest(writer)
-            while pending:
-                finish_oldest(writer)
+        with tf.io.TFRecordWriter(tmp) as writer:
+            for frames_done, (_, (data, counts)) in enumerate(
+                    ordered_map(label, items, ANNOTATION_THREADS, 2 * ANNOTATION_THREADS), 1):
+                writer.write(data)
+                totals.setdefault("first_frame_seconds", time.time() - t0)
+                for k, v in counts.items():
+                    totals[k] += v
+                if frames_done % 10 == 0:
+                    _log_progress(in_path, frames_done, t0, totals["first_frame_seconds"])
     except BaseException:
         if gfile.exists(tmp):
             gfile.remove(tmp)  # nothing half-written is left to be mistaken for output

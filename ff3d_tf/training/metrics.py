@@ -1,6 +1,6 @@
 """Scene-flow metrics as a Keras metric that keeps sums and counts (adds up over batches and replicas).
 
-`SceneFlowMetrics(moving_threshold_mps=0.5)`; `update_state(flow_true, flow_pred, class_id)`; `result()` -> dict:
+`SceneFlowMetrics(moving_threshold_mps=schema.MOVING_THRESHOLD_MPS)`; `update_state(flow_true, flow_pred, class_id)`; `result()` -> dict:
 - "{cls}/{subset}/{stat}": cls in background, vehicle, pedestrian, sign, cyclist, all (= classes 0..4); subset in all,
   moving, stationary (moving: |flow_true| >= threshold); stat in mean_l2_mps, mean_l2_mph, frac_l2_le_0.1,
   frac_l2_le_1.0, count (paper Table 2).
@@ -22,7 +22,7 @@ import tensorflow as tf
 
 from ff3d_tf import schema
 
-CLASS_KEYS = ("background", "vehicle", "pedestrian", "sign", "cyclist")
+CLASS_KEYS = tuple(schema.CLASS_NAMES[c] for c in sorted(schema.CLASS_NAMES))  # class id order 0..4
 ALL_CLASS_KEYS = CLASS_KEYS + ("all",)
 SUBSETS = ("all", "moving", "stationary")
 MPS_TO_MPH = 2.2369362920544
@@ -32,7 +32,7 @@ NUM_BUCKETS = len(BUCKET_EDGES_M)
 
 
 class SceneFlowMetrics(keras.metrics.Metric):
-    def __init__(self, moving_threshold_mps: float = 0.5, name: str = "scene_flow_metrics", **kwargs):
+    def __init__(self, moving_threshold_mps: float = schema.MOVING_THRESHOLD_MPS, name: str = "scene_flow_metrics", **kwargs):
         super().__init__(name=name, **kwargs)
         self.moving_threshold_mps = float(moving_threshold_mps)
 
@@ -142,7 +142,7 @@ def compute_results(cells: np.ndarray, moving_cls: np.ndarray, buckets: np.ndarr
 
 def format_paper_table(result: dict[str, float], title: str = "") -> str:
     """The paper's Table 2 layout (vehicle / pedestrian / cyclist x all / moving / stationary, and background)."""
-    cols = [(c, s) for c in ("vehicle", "pedestrian", "cyclist") for s in SUBSETS] + [("background", "all")]
+    cols = [(c, s) for c in schema.PAPER_TABLE_CLASSES for s in SUBSETS] + [("background", "all")]
     head1 = f"{'':<14}" + "".join(f"{c[:10]:>11}" for c, _ in cols)
     head2 = f"{'error metric':<14}" + "".join(f"{s[:10]:>11}" for _, s in cols)
     rows = []
@@ -159,7 +159,7 @@ def format_paper_table(result: dict[str, float], title: str = "") -> str:
 
 def format_extra_tables(result: dict[str, float]) -> str:
     lines = [f"{'moving classification':<22}{'precision':>10}{'recall':>10}"]
-    for c in ("vehicle", "pedestrian", "cyclist", "background", "all"):
+    for c in schema.PAPER_TABLE_CLASSES + ("background", "all"):
         p, r = result[f"{c}/moving_precision"], result[f"{c}/moving_recall"]
         lines.append(f"{c:<22}{p:>10.3f}{r:>10.3f}")
     lines.append("three-way EPE (m per 0.1 s): " + ", ".join(

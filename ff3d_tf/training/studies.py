@@ -20,7 +20,11 @@ import json
 import math
 import os
 
-CLASSES = ("vehicle", "pedestrian", "cyclist")
+from ff3d_tf import schema
+
+CLASSES = schema.PAPER_TABLE_CLASSES
+TABLE4_CLASSES = ("cyclist", "pedestrian")  # the classes whose labels paper Table 4 withholds, in its row order
+GROUND_REMOVAL_Z_M = 0.2  # paper Sec. 5.2: "a crude threshold of 0.2 m above ground"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,10 +56,11 @@ STUDIES = {s.name: s for s in (
           _ACCURACY + ("all/moving/mean_l2_mps",), (0.1, 0.25, 0.5, 1.0)),
     Study("point_density", "Accuracy vs point density (training and evaluation)", "share of points kept",
           _ACCURACY + ("all/moving/mean_l2_mps",), (0.1, 0.25, 0.5, 1.0)),
-    Study("ground_removal", "Ground removal (points below 0.2 m dropped in training and evaluation)", None,
+    Study("ground_removal", f"Ground removal (points below {GROUND_REMOVAL_Z_M} m dropped in training and evaluation)",
+          None,
           ("all/moving/mean_l2_mps", "all/stationary/mean_l2_mps") + _MEAN_L2),
     Study("class_ablation", "Generalisation to unlabelled moving objects (paper Table 4)", None,
-          tuple(f"{c}/{k}" for c in ("cyclist", "pedestrian") for k in (
+          tuple(f"{c}/{k}" for c in TABLE4_CLASSES for k in (
               "all/mean_l2_mps", "moving/mean_l2_mps", "stationary/mean_l2_mps", "moving_precision",
               "moving_recall"))),
     Study("ego_motion", "Ego-motion compensation of the input (paper appendix)", None, _MEAN_L2),
@@ -80,10 +85,10 @@ def variants(study: str, num_train_segments: int, values: tuple[float, ...] = ()
     if study == "point_density":
         return [Variant(f"points_{v:g}", v, input_changes={"data.point_keep_fraction": v}) for v in sorted(values)]
     if study == "ground_removal":
-        return [Variant("with_ground"), Variant("ground_removed", input_changes={"data.remove_ground_below_z_m": 0.2})]
+        return [Variant("with_ground"), Variant("ground_removed", input_changes={"data.remove_ground_below_z_m": GROUND_REMOVAL_Z_M})]
     if study == "class_ablation":
         return [Variant("supervised")] + [Variant(f"{c}_{m}", train_changes={"data.class_ablation": f"{c}_{m}"})
-                                          for c in ("cyclist", "pedestrian") for m in ("stationary", "ignored")]
+                                          for c in TABLE4_CLASSES for m in ("stationary", "ignored")]
     return [Variant("ego_compensated"), Variant("not_compensated",
                                                 input_changes={"data.ego_motion_compensation": False})]
 

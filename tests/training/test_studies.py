@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from ff3d_tf.training.trainer import studies
+from ff3d_tf.training import studies
 
 
 def test_variants():
