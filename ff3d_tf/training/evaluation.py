@@ -10,7 +10,7 @@ import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
-from ff3d_tf.training.metrics import SceneFlowMetrics
+from ff3d_tf.training.metrics import AV2_MAX_DISTANCE_M, CROP_PREFIX, SceneFlowMetrics, published_epe_keys
 from ff3d_tf.inference.predictor import Predictor
 
 
@@ -25,8 +25,13 @@ def count_pairs(files: list[str]) -> int:
 
 def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
              log_fn=print) -> tuple[dict, dict]:
-    """(model metrics, zero-flow metrics) over every pair of `files` (points with a prediction only)."""
+    """(model metrics, zero-flow metrics) over every pair of `files` (points with a prediction only).
+
+    Each dict also holds the three-way and bucketed EPE within the Argoverse 2 evaluator's 35 m crop, under
+    `metrics.CROP_PREFIX`, to set beside published numbers.
+    """
     metric, zero = SceneFlowMetrics(), SceneFlowMetrics()
+    metric_crop, zero_crop = (SceneFlowMetrics(max_distance_m=AV2_MAX_DISTANCE_M) for _ in range(2))
     total = count_pairs(files)
     if max_pairs:
         total = min(total, max_pairs)
@@ -37,9 +42,10 @@ def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_
     with pairs.input_errors_named(files):  # a bad record: FrameDecodeError naming file, record and field
         for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base):
             flow_pred, valid = predictor.predict(batch, ex)
-            metric.update_state(ex["flow_mps_t0"], flow_pred, ex["class_id_t0"], point_valid=valid)
-            zero.update_state(ex["flow_mps_t0"], tf.zeros_like(ex["flow_mps_t0"]), ex["class_id_t0"],
-                              point_valid=valid)
+            zero_flow = tf.zeros_like(ex["flow_mps_t0"])
+            for m, flow in ((metric, flow_pred), (zero, zero_flow), (metric_crop, flow_pred), (zero_crop, zero_flow)):
+                m.update_state(ex["flow_mps_t0"], flow, ex["class_id_t0"], point_valid=valid,
+                               points_xyz=ex["points_xyz_t0"])
             done += 1
             if done % 5 == 0 or done == total:
                 rate = done / max(time.time() - t0, 1e-9)
@@ -47,7 +53,8 @@ def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_
                        f"ETA {max(total - done, 0) / max(rate, 1e-9):.0f}s")
     if done == 0:
         raise ValueError(f"no frame pairs in {files}")
-    return metric.result(), zero.result()
+    return tuple({**full.result(), **{CROP_PREFIX + k: v for k, v in published_epe_keys(crop.result()).items()}}
+                 for full, crop in ((metric, metric_crop), (zero, zero_crop)))
 
 
 def write_results(out_dir: str, result: dict, zero: dict, cfg: ExperimentConfig) -> None:

@@ -13,6 +13,11 @@
   bucket; dynamic = mean over the other non-empty buckets of (bucket mean EPE / bucket mean speed); NaN-mean over
   classes.
 Class -1 points (and points outside `point_valid`) are ignored. An empty cell is NaN, never 0.
+
+`max_distance_m`: None (default) counts every point, as the paper's tables do. The community's evaluator of the
+three-way and bucketed EPE (Argoverse 2 scene flow challenge; published FastFlow3D results) counts only points with
+max(|x|, |y|) < 35 m in the ego frame (`AV2_MAX_DISTANCE_M`); with `max_distance_m` set, `update_state` takes the t0
+points as the keyword `points_xyz` [..., 3] (vehicle frame at t0, metres) and keeps only those.
 """
 from __future__ import annotations
 
@@ -29,12 +34,17 @@ MPS_TO_MPH = 2.2369362920544
 SECONDS_PER_FRAME = 0.1  # AV2-style metrics are in metres per 0.1 s
 BUCKET_EDGES_M = np.round(np.arange(0.0, 2.0 + 1e-9, 0.04), 6)  # 0, 0.04, ..., 2.0 -> 50 buckets + [2.0, inf)
 NUM_BUCKETS = len(BUCKET_EDGES_M)
+AV2_MAX_DISTANCE_M = 35.0  # the Argoverse 2 evaluator's crop: max(|x|, |y|) < 35 m around the ego vehicle
 
 
 class SceneFlowMetrics(keras.metrics.Metric):
-    def __init__(self, moving_threshold_mps: float = schema.MOVING_THRESHOLD_MPS, name: str = "scene_flow_metrics", **kwargs):
+    def __init__(self, moving_threshold_mps: float = schema.MOVING_THRESHOLD_MPS,
+                 max_distance_m: float | None = None, name: str = "scene_flow_metrics", **kwargs):
         super().__init__(name=name, **kwargs)
         self.moving_threshold_mps = float(moving_threshold_mps)
+        if max_distance_m is not None and not max_distance_m > 0:
+            raise ValueError(f"max_distance_m must be > 0 or None, got {max_distance_m}")
+        self.max_distance_m = None if max_distance_m is None else float(max_distance_m)
 
         def var(name, shape):
             return self.add_variable(shape=shape, initializer="zeros", dtype="float64", aggregation="sum",
@@ -46,13 +56,21 @@ class SceneFlowMetrics(keras.metrics.Metric):
         # [class, bucket, (sum_epe_m, sum_speed_m, count)]
         self.buckets = var("buckets", (5, NUM_BUCKETS, 3))
 
-    def update_state(self, flow_true, flow_pred, class_id, point_valid=None, sample_weight=None):
+    def update_state(self, flow_true, flow_pred, class_id, point_valid=None, sample_weight=None, points_xyz=None):
+        if sample_weight is not None:
+            raise ValueError("SceneFlowMetrics takes point_valid, not sample_weight")
+        if self.max_distance_m is not None and points_xyz is None:
+            raise ValueError(f"SceneFlowMetrics(max_distance_m={self.max_distance_m}) needs the t0 points: "
+                             "update_state(..., points_xyz=[..., 3])")
         flow_true = tf.reshape(tf.cast(flow_true, tf.float64), [-1, 3])
         flow_pred = tf.reshape(tf.cast(flow_pred, tf.float64), [-1, 3])
         class_id = tf.reshape(tf.cast(class_id, tf.int32), [-1])
         keep = class_id >= 0
         if point_valid is not None:
             keep = tf.logical_and(keep, tf.reshape(tf.cast(point_valid, tf.bool), [-1]))
+        if self.max_distance_m is not None:
+            xy = tf.reshape(tf.cast(points_xyz, tf.float64), [-1, 3])[:, :2]
+            keep = tf.logical_and(keep, tf.reduce_max(tf.abs(xy), -1) < self.max_distance_m)
         cls = tf.where(keep, tf.clip_by_value(class_id, 0, 4), 0)
         err = tf.norm(flow_pred - flow_true, axis=-1)
         speed_true = tf.norm(flow_true, axis=-1)
@@ -86,7 +104,8 @@ class SceneFlowMetrics(keras.metrics.Metric):
                                np.asarray(self.buckets.numpy()))
 
     def get_config(self):
-        return {"name": self.name, "moving_threshold_mps": self.moving_threshold_mps}
+        return {"name": self.name, "moving_threshold_mps": self.moving_threshold_mps,
+                "max_distance_m": self.max_distance_m}
 
 
 def _div(a, b):
@@ -157,15 +176,29 @@ def format_paper_table(result: dict[str, float], title: str = "") -> str:
     return "\n".join(([title] if title else []) + [head1, head2] + rows + [counts])
 
 
+CROP_PREFIX = f"within_{AV2_MAX_DISTANCE_M:g}m/"  # result keys of the cropped three-way and bucketed EPE
+
+
+def published_epe_keys(result: dict[str, float]) -> dict[str, float]:
+    """The three-way and bucketed EPE entries of a result (what is reported again under `CROP_PREFIX`)."""
+    return {k: v for k, v in result.items() if k.startswith(("three_way/", "bucketed/"))}
+
+
 def format_extra_tables(result: dict[str, float]) -> str:
+    """Moving classification; three-way and bucketed EPE over all points and, when present, within the 35 m crop."""
     lines = [f"{'moving classification':<22}{'precision':>10}{'recall':>10}"]
     for c in schema.PAPER_TABLE_CLASSES + ("background", "all"):
         p, r = result[f"{c}/moving_precision"], result[f"{c}/moving_recall"]
         lines.append(f"{c:<22}{p:>10.3f}{r:>10.3f}")
-    lines.append("three-way EPE (m per 0.1 s): " + ", ".join(
-        f"{k} {result[f'three_way/{k}_epe_m']:.4f}" for k in ("fg_dynamic", "fg_static", "bg_static", "mean")))
-    lines.append("bucketed normalized EPE: " + ", ".join(
-        f"{c} static {result[f'bucketed/{c}/static_epe_m']:.4f} dynamic {result[f'bucketed/{c}/dynamic_norm_epe']:.3f}"
-        for c in CLASS_KEYS) + f"; mean static {result['bucketed/mean_static']:.4f} dynamic "
-        f"{result['bucketed/mean_dynamic']:.3f}")
+    for label, prefix in (("all points", ""), (f"max(|x|, |y|) < {AV2_MAX_DISTANCE_M:g} m, as the AV2 evaluator",
+                                               CROP_PREFIX)):
+        if prefix + "three_way/mean_epe_m" not in result:
+            continue
+        r = {k[len(prefix):]: v for k, v in result.items() if k.startswith(prefix)}
+        lines.append(f"three-way EPE (m per 0.1 s), {label}: " + ", ".join(
+            f"{k} {r[f'three_way/{k}_epe_m']:.4f}" for k in ("fg_dynamic", "fg_static", "bg_static", "mean")))
+        lines.append(f"bucketed normalized EPE, {label}: " + ", ".join(
+            f"{c} static {r[f'bucketed/{c}/static_epe_m']:.4f} dynamic {r[f'bucketed/{c}/dynamic_norm_epe']:.3f}"
+            for c in CLASS_KEYS) + f"; mean static {r['bucketed/mean_static']:.4f} dynamic "
+            f"{r['bucketed/mean_dynamic']:.3f}")
     return "\n".join(lines)
