@@ -7,9 +7,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
+import types
+import typing
 from typing import Any
 
+import numpy as np
 import yaml
 
 from ff3d_tf import schema
@@ -17,6 +21,18 @@ from ff3d_tf import schema
 
 class ConfigError(ValueError):
     """A configuration that cannot work; raised before any data is read or any step runs."""
+
+
+MAX_PILLARS_PER_AXIS = 16384  # 512 in the paper; larger grids cannot fit an accelerator's memory
+MAX_WIDTH = 65536  # channels of any layer
+MAX_BUCKET_BASE = 1 << 17  # point buckets reach 12288 x base and must stay within int32
+
+
+def _in_range(key: str, value, lo, hi) -> None:
+    """ConfigError naming the key and the allowed closed range [lo, hi] (None: unbounded) unless value is in it."""
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        allowed = f">= {lo}" if hi is None else f"<= {hi}" if lo is None else f"in [{lo}, {hi}]"
+        raise ConfigError(f"{key}={value!r}: must be {allowed}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,6 +61,7 @@ class GridConfig:
                 raise ConfigError(
                     f"grid.{name}={n}: the U-Net halves the grid three times, so it must be a positive multiple of 8 "
                     f"(e.g. {lo} or {hi})")
+            _in_range(f"grid.{name}", n, 8, MAX_PILLARS_PER_AXIS)
         for name in ("x_range_m", "y_range_m", "z_range_m"):
             lo, hi = getattr(self, name)
             if not lo < hi:
@@ -82,13 +99,17 @@ class DataConfig:
         if not self.returns or any(r not in (1, 2) for r in self.returns):
             raise ConfigError(f"data.returns={self.returns}: each must be 1 or 2")
         if self.max_frame_gap_s <= 0:
-            raise ConfigError("data.max_frame_gap_s must be > 0")
-        if self.point_bucket_base < 1:
-            raise ConfigError("data.point_bucket_base must be >= 1")
+            raise ConfigError(f"data.max_frame_gap_s={self.max_frame_gap_s}: must be > 0")
+        _in_range("data.point_bucket_base", self.point_bucket_base, 1, MAX_BUCKET_BASE)
+        _in_range("data.shuffle_buffer", self.shuffle_buffer, 1, None)
+        _in_range("data.max_training_segments", self.max_training_segments, 0, None)
         if self.class_ablation not in CLASS_ABLATIONS:
             raise ConfigError(f"data.class_ablation={self.class_ablation!r} unknown; one of {CLASS_ABLATIONS}")
         if not 0.0 < self.point_keep_fraction <= 1.0:
-            raise ConfigError("data.point_keep_fraction must be in (0, 1]")
+            raise ConfigError(f"data.point_keep_fraction={self.point_keep_fraction}: must be in (0, 1]")
+
+
+COMPILE_MODES = ("auto", "xla", "hybrid", "none")  # model.compile
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,16 +125,34 @@ class ModelConfig:
     # Zeros for row Z's kernel (the model starts at the zero-flow prediction) instead of the paper's Glorot init:
     # sum-pooled dense pillars through the linear decoder otherwise start at outputs of tens of m/s.
     zero_init_output: bool = False
-    jit_compile: bool = True
+    # How the forward and the training step are compiled (one of COMPILE_MODES): xla = the whole program in XLA;
+    # hybrid = the point stages (pillarize, encode, scatter; ungrid head) in XLA, the convolutions as TensorFlow
+    # graph kernels (oneDNN on CPU, faster there than XLA's); none = no XLA; auto = hybrid on CPU, xla on GPU/TPU.
+    compile: str = "auto"
     mixed_precision: bool = False  # bfloat16 compute, float32 variables (Keras "mixed_bfloat16")
 
+    @property
+    def jit_compile(self) -> bool:
+        """Whether callers wrap the whole forward in one XLA program (`model.compile: xla`); the model applies every
+        other mode itself (see `ff3d_tf.model.compile`), so False never turns its XLA stages off."""
+        return self.compile == "xla"
+
     def validate(self) -> None:
-        if len(self.encoder_widths) != 3 or len(self.encoder_depths) != 3 or len(self.decoder_dims) != 3:
-            raise ConfigError("model: three encoder stages and three Upsample-Skip blocks (paper table)")
+        for name in ("encoder_widths", "encoder_depths", "decoder_dims"):
+            if len(getattr(self, name)) != 3:
+                raise ConfigError(f"model.{name}: must have 3 entries (three encoder stages and three Upsample-Skip "
+                                  f"blocks, paper table), got {len(getattr(self, name))}")
         if any(d < 1 for d in self.encoder_depths):
-            raise ConfigError("model.encoder_depths: each stage needs at least its stride-2 convolution")
+            raise ConfigError("model.encoder_depths: each stage needs at least its stride-2 convolution (>= 1)")
+        _in_range("model.point_feature_dim", self.point_feature_dim, 1, MAX_WIDTH)
+        _in_range("model.head_hidden_dim", self.head_hidden_dim, 1, MAX_WIDTH)
+        for name in ("encoder_widths", "decoder_dims"):
+            for i, width in enumerate(np.ravel(getattr(self, name)).tolist()):
+                _in_range(f"model.{name} (value {i})", width, 1, MAX_WIDTH)
         if self.decoder_dims[2][0] != self.point_feature_dim:
             raise ConfigError("model.decoder_dims[2][0] must equal point_feature_dim (row X concatenates them)")
+        if self.compile not in COMPILE_MODES:
+            raise ConfigError(f"model.compile={self.compile!r}: one of {', '.join(COMPILE_MODES)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,6 +194,13 @@ class TrainConfig:
             raise ConfigError("train.grad_clip_norm must be > 0 or null")
         if self.max_nonfinite_steps_in_row < 1:
             raise ConfigError("train.max_nonfinite_steps_in_row must be >= 1")
+        for name in ("beta_1", "beta_2"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ConfigError(f"train.{name}={getattr(self, name)}: must be in [0, 1)")
+        for name in ("checkpoint_every_steps", "keep_checkpoints", "log_every_steps", "eval_num_batches"):
+            _in_range(f"train.{name}", getattr(self, name), 1, None)
+        _in_range("train.eval_every_steps", self.eval_every_steps, 0, None)  # 0: never
+        _in_range("train.seed", self.seed, 0, 2 ** 32 - 1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,37 +228,49 @@ class ExperimentConfig:
             yaml.safe_dump(json.loads(json.dumps(self.to_dict())), f, sort_keys=False)
 
 
-def _coerce(value: Any, default: Any, where: str) -> Any:
-    """Checks/coerces an override against the type of the default value it replaces."""
-    if dataclasses.is_dataclass(default):
+def _coerce(value: Any, annotation: Any, where: str) -> Any:
+    """Checks/coerces an override against the declared type of the field it replaces; errors name the key and the
+    type that is allowed."""
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if dataclasses.is_dataclass(annotation):
         if not isinstance(value, dict):
-            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
-        return _apply(default, value, where)
-    if isinstance(default, tuple):
+            raise ConfigError(f"{where}: expected a mapping of {sorted(f.name for f in dataclasses.fields(annotation))}"
+                              f", got {value!r}")
+        return _apply(annotation(), value, where)
+    if origin in (typing.Union, types.UnionType):  # `X | None`
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(value, inner[0], where + " (or null)") if len(inner) == 1 else value
+    if origin is tuple:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
-        proto = default[0] if default else None
-        return tuple(_coerce(v, proto, f"{where}[{i}]") if proto is not None else v for i, v in enumerate(value))
-    if isinstance(default, bool):
+        if args and args[-1] is Ellipsis:
+            item_types = [args[0]] * len(value)
+        else:
+            if len(value) != len(args):
+                raise ConfigError(f"{where}: expected a list of {len(args)} values, got {len(value)}: {value!r}")
+            item_types = list(args)
+        return tuple(_coerce(v, t, f"{where}[{i}]") for i, (v, t) in enumerate(zip(value, item_types)))
+    if annotation is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{where}: expected true/false, got {value!r}")
         return value
-    if isinstance(default, int) and not isinstance(default, bool):
+    if annotation is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{where}: expected an integer, got {value!r}")
         return value
-    if isinstance(default, float) or default is None:
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        if isinstance(value, str) and default is not None and not isinstance(default, str):
+    if annotation is float:
+        number = value
+        if isinstance(value, str):
             try:
-                return float(value)
-            except ValueError as e:
-                raise ConfigError(f"{where}: expected a number, got {value!r}") from e
-        return float(value) if isinstance(value, int) and default is not None else value
-    if isinstance(default, str):
+                number = float(value)
+            except ValueError:
+                number = None
+        if isinstance(number, bool) or not isinstance(number, (int, float)) or not math.isfinite(number):
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
+        return float(number)
+    if annotation is str:
         if not isinstance(value, str):
             raise ConfigError(f"{where}: expected a string, got {value!r}")
         return value
@@ -221,11 +279,12 @@ def _coerce(value: Any, default: Any, where: str) -> Any:
 
 def _apply(obj: Any, overrides: dict[str, Any], where: str) -> Any:
     fields = {f.name: f for f in dataclasses.fields(obj)}
+    hints = typing.get_type_hints(type(obj))
     changes = {}
     for key, value in overrides.items():
         if key not in fields:
             raise ConfigError(f"unknown config key {where + '.' if where else ''}{key}; known: {sorted(fields)}")
-        changes[key] = _coerce(value, getattr(obj, key), f"{where + '.' if where else ''}{key}")
+        changes[key] = _coerce(value, hints[key], f"{where + '.' if where else ''}{key}")
     return dataclasses.replace(obj, **changes)
 
 

@@ -29,3 +29,35 @@ def test_yaml_is_data_only(tmp_path):
     p.write_text("train: !!python/object/apply:os.system ['echo hi']\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_config(str(p))
+
+
+@pytest.mark.parametrize("override,message", [
+    ("train.learnin_rate=1", r"unknown config key train.learnin_rate; known: \[.*'learning_rate'"),
+    ("gridd.num_pillars_x=8", r"unknown config key gridd; known: \['data', 'grid', 'model', 'train'\]"),
+    ("grid.x_range_m=[1, 2, 3]", r"grid.x_range_m: expected a list of 2 values, got 3"),
+    ("grid.z_range_m=[-3]", r"grid.z_range_m: expected a list of 2 values, got 1"),
+    ("train.background_weight=null", r"train.background_weight: expected a finite number, got None"),
+    ("train.learning_rate=.inf", r"train.learning_rate: expected a finite number, got inf"),
+    ("train.grad_clip_norm=.nan", r"train.grad_clip_norm \(or null\): expected a finite number"),
+    ("data.remove_ground_below_z_m=low", r"data.remove_ground_below_z_m \(or null\): expected a finite number"),
+    ("train.beta_1=1.5", r"train.beta_1=1.5: must be in \[0, 1\)"),
+    ("train.checkpoint_every_steps=0", r"train.checkpoint_every_steps=0: must be >= 1"),
+    ("train.seed=-1", r"train.seed=-1: must be in \[0, 4294967295\]"),
+    ("data.shuffle_buffer=0", r"data.shuffle_buffer=0: must be >= 1"),
+    ("data.point_bucket_base=4611686018427387904", r"data.point_bucket_base=4611686018427387904: must be in \[1, "),
+    ("grid.num_pillars_x=1048576", r"grid.num_pillars_x=1048576: must be in \[8, 16384\]"),
+    ("model.head_hidden_dim=0", r"model.head_hidden_dim=0: must be in \[1, 65536\]"),
+    ("model.encoder_widths=[0, 8, 8]", r"model.encoder_widths \(value 0\)=0: must be in \[1, 65536\]"),
+    ("model.decoder_dims=[[8, 8], [8, 8]]", r"model.decoder_dims: must have 3 entries"),
+    ("data=[1, 2]", r"data: expected a mapping of \[.*'laser_names'"),
+])
+def test_bad_values_name_the_key_and_what_is_allowed(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(None, [override])
+
+
+def test_values_within_range_are_kept():
+    cfg = load_config(None, ["train.eval_every_steps=0", "data.remove_ground_below_z_m=-1", "train.beta_1=0",
+                             "train.grad_clip_norm=null", "data.remove_ground_below_z_m='0.25'"])
+    assert cfg.train.eval_every_steps == 0 and cfg.train.beta_1 == 0.0 and cfg.train.grad_clip_norm is None
+    assert cfg.data.remove_ground_below_z_m == 0.25  # numbers given as text are read as numbers

@@ -26,12 +26,62 @@ AV2_CLASS = {
 CUBOID_MARGIN_M = (0.2, 0.2, 0.0)  # Argoverse's scene-flow labels enlarge cuboids by 0.2 m in length and width
 
 
-def _table(path: str) -> dict[str, np.ndarray]:
+class Argoverse2FormatError(ValueError):
+    """A log file that cannot be read as Argoverse 2: names the file, the column (or "file") and what is wrong."""
+
+    def __init__(self, path: str, column: str, reason: str):
+        self.path, self.column, self.reason = path, column, reason
+        super().__init__(f"{path}: column {column}: {reason}")
+
+
+# Columns each reader needs, with their kind: f = finite number, i = integer, s = string.
+SWEEP_COLUMNS = {"x": "f", "y": "f", "z": "f", "intensity": "f", "laser_number": "i"}
+POSE_COLUMNS = {"timestamp_ns": "i", "qw": "f", "qx": "f", "qy": "f", "qz": "f", "tx_m": "f", "ty_m": "f", "tz_m": "f"}
+CUBOID_COLUMNS = {**POSE_COLUMNS, "category": "s", "track_uuid": "s", "length_m": "f", "width_m": "f",
+                  "height_m": "f"}
+FLOW_COLUMNS = {"flow_tx_m": "f", "flow_ty_m": "f", "flow_tz_m": "f"}
+QUATERNION_NORM_TOLERANCE = 1e-3
+
+
+def _table(path: str, columns: dict[str, str]) -> dict[str, np.ndarray]:
+    """The named columns of a feather file as NumPy, checked: present, of their kind, no nulls, finite numbers."""
+    import pyarrow as pa
     import pyarrow.feather as feather
     if not os.path.exists(path):
-        raise FileNotFoundError(f"Argoverse 2 log: missing {path}")
-    t = feather.read_table(path)
-    return {name: t.column(name).to_numpy() for name in t.schema.names}
+        raise Argoverse2FormatError(path, "file", "missing from the Argoverse 2 log")
+    try:
+        t = feather.read_table(path, columns=None)
+        t.validate(full=True)
+    except (pa.ArrowException, OSError, ValueError) as err:
+        raise Argoverse2FormatError(path, "file", f"not a readable feather (Arrow IPC) file ({type(err).__name__})"
+                                    ) from None
+    out = {}
+    for name, kind in columns.items():
+        if name not in t.schema.names:
+            raise Argoverse2FormatError(path, name, f"missing; the file has {t.schema.names}")
+        column = t.column(name)
+        dtype = column.type
+        ok = {"f": pa.types.is_floating(dtype) or pa.types.is_integer(dtype), "i": pa.types.is_integer(dtype),
+              "s": pa.types.is_string(dtype) or pa.types.is_large_string(dtype)}[kind]
+        if not ok:
+            wanted = {"f": "a number", "i": "an integer", "s": "a string"}[kind]
+            raise Argoverse2FormatError(path, name, f"type {dtype}, expected {wanted}")
+        if column.null_count:
+            raise Argoverse2FormatError(path, name, f"{column.null_count} null values")
+        values = column.to_numpy()
+        if kind == "f" and not np.all(np.isfinite(values)):
+            raise Argoverse2FormatError(path, name, f"non-finite value at row {int(np.argmin(np.isfinite(values)))}")
+        out[name] = values
+    return out
+
+
+def _unit_quaternions(path: str, t: dict[str, np.ndarray]) -> None:
+    norm = np.sqrt(t["qw"].astype(np.float64) ** 2 + t["qx"] ** 2 + t["qy"] ** 2 + t["qz"] ** 2)
+    bad = np.abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE
+    if np.any(bad):
+        raise Argoverse2FormatError(path, "qw..qz", f"quaternion of norm {norm[bad][0]:.4g} at row "
+                                    f"{int(np.argmax(bad))}; rotations need unit norm within "
+                                    f"{QUATERNION_NORM_TOLERANCE}")
 
 
 def _yaw(qw, qx, qy, qz):
@@ -46,17 +96,26 @@ def _rotation(qw, qx, qy, qz) -> np.ndarray:
 
 
 def sweep_timestamps(log_dir: str) -> list[int]:
-    names = os.listdir(os.path.join(log_dir, "sensors", "lidar"))
-    return sorted(int(n.split(".")[0]) for n in names if n.endswith(".feather"))
+    lidar_dir = os.path.join(log_dir, "sensors", "lidar")
+    if not os.path.isdir(lidar_dir):
+        raise Argoverse2FormatError(lidar_dir, "file", "missing: not an Argoverse 2 sensor log")
+    names = [n for n in os.listdir(lidar_dir) if n.endswith(".feather")]
+    bad = [n for n in names if not n[: -len(".feather")].isdigit()]
+    if bad:
+        raise Argoverse2FormatError(os.path.join(lidar_dir, bad[0]), "file",
+                                    "sweep names must be <timestamp_ns>.feather")
+    return sorted(int(n[: -len(".feather")]) for n in names)
 
 
 def ego_pose(log_dir: str, timestamp_ns: int) -> np.ndarray:
     """4x4 ego -> city (the WOD `pose` convention: vehicle -> world)."""
-    t = _table(os.path.join(log_dir, "city_SE3_egovehicle.feather"))
+    path = os.path.join(log_dir, "city_SE3_egovehicle.feather")
+    t = _table(path, POSE_COLUMNS)
     hit = np.nonzero(t["timestamp_ns"] == timestamp_ns)[0]
     if hit.size == 0:
-        raise KeyError(f"{log_dir}: no ego pose at timestamp {timestamp_ns}")
+        raise Argoverse2FormatError(path, "timestamp_ns", f"no ego pose at sweep timestamp {timestamp_ns}")
     i = hit[0]
+    _unit_quaternions(path, {q: t[q][i:i + 1] for q in ("qw", "qx", "qy", "qz")})
     m = np.eye(4)
     m[:3, :3] = _rotation(t["qw"][i], t["qx"][i], t["qy"][i], t["qz"][i])
     m[:3, 3] = (t["tx_m"][i], t["ty_m"][i], t["tz_m"][i])
@@ -71,8 +130,10 @@ def cuboids(log_dir: str, timestamp_ns: int) -> dict:
     reversal makes the two conventions agree (sample log, points within 1 cm of Argoverse's flow: pedestrians 92.7%
     -> 97.8%, cyclists 91.6% -> 100%).
     """
-    t = _table(os.path.join(log_dir, "annotations.feather"))
+    path = os.path.join(log_dir, "annotations.feather")
+    t = _table(path, CUBOID_COLUMNS)
     sel = np.flatnonzero(t["timestamp_ns"] == timestamp_ns)[::-1]
+    _unit_quaternions(path, {q: t[q][sel] for q in ("qw", "qx", "qy", "qz")})
     cats = t["category"][sel]
     return {
         "center": np.stack([t["tx_m"][sel], t["ty_m"][sel], t["tz_m"][sel]], -1).astype(np.float64),
@@ -85,7 +146,7 @@ def cuboids(log_dir: str, timestamp_ns: int) -> dict:
 
 def read_sweep(log_dir: str, timestamp_ns: int) -> dict:
     """One sweep as a WOD-reader frame dict (no flow labels: flow 0, class -1; elongation 0; intensity / 255)."""
-    t = _table(os.path.join(log_dir, "sensors", "lidar", f"{timestamp_ns}.feather"))
+    t = _table(os.path.join(log_dir, "sensors", "lidar", f"{timestamp_ns}.feather"), SWEEP_COLUMNS)
     xyz = np.stack([t["x"], t["y"], t["z"]], -1).astype(np.float32)
     n = len(xyz)
     return {
@@ -105,6 +166,9 @@ def labelled_pair(log_dir: str, index: int = 1) -> tuple[dict, dict]:
     """(frame t-1, frame t0) for sweeps index-1 and index, the t0 frame labelled by `bootstrap_flow` (paper convention)."""
     from ff3d_tf.labels.box_flow import bootstrap_flow
     stamps = sweep_timestamps(log_dir)
+    if not 1 <= index < len(stamps):
+        raise Argoverse2FormatError(os.path.join(log_dir, "sensors", "lidar"), "file",
+                                    f"a pair needs sweeps {index - 1} and {index}; the log has {len(stamps)}")
     ts_tm1, ts_t0 = stamps[index - 1], stamps[index]
     f_tm1, f_t0 = read_sweep(log_dir, ts_tm1), read_sweep(log_dir, ts_t0)
     flow, cls = bootstrap_flow(f_t0["points_xyz"], cuboids(log_dir, ts_t0), cuboids(log_dir, ts_tm1), f_t0["pose"],
@@ -122,7 +186,7 @@ def argoverse_flow_in_paper_convention(log_dir: str) -> tuple[np.ndarray, np.nda
     """
     stamps = sweep_timestamps(log_dir)
     p = read_sweep(log_dir, stamps[0])["points_xyz"].astype(np.float64)
-    lab = _table(os.path.join(log_dir, "flow_labels.feather"))
+    lab = _table(os.path.join(log_dir, "flow_labels.feather"), FLOW_COLUMNS)
     f = np.stack([lab["flow_tx_m"], lab["flow_ty_m"], lab["flow_tz_m"]], -1).astype(np.float64)
     ego1_from_ego0 = np.linalg.inv(ego_pose(log_dir, stamps[1])) @ ego_pose(log_dir, stamps[0])
     ego0_from_ego1 = np.linalg.inv(ego1_from_ego0)

@@ -114,47 +114,56 @@ def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
 
 
 @contextlib.contextmanager
-def input_errors_named(files: list[str]):
-    """Turns a decoding error of the input pipeline over `files` into a FrameDecodeError (`waymo.pipeline_error`);
-    any other error passes unchanged."""
+def input_errors_named(files: list[str], options: waymo.DecodeOptions | None = None):
+    """Turns a decoding error of the input pipeline over `files` into a FrameDecodeError naming file, record and
+    field (`waymo.pipeline_error`; `options` as the pipeline decodes, see `decode_options`); any other error passes
+    unchanged."""
     try:
         yield
     except tf.errors.OpError as err:
-        bad = waymo.pipeline_error(err, list(files))
+        bad = waymo.pipeline_error(err, list(files), options)
         if bad is None:
             raise
         raise bad from None
 
 
 def _frames_dataset(path: str, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool):
-    def with_count(index, frame):
+    def frame_only(index, frame):
         del index
-        frame["num_points"] = tf.shape(frame["points_xyz"])[0]
         return frame
 
-    return waymo.frames_dataset(path, decode_options(cfg, inference_only), skip_bad_records).map(with_count)
+    return waymo.frames_dataset(path, decode_options(cfg, inference_only), skip_bad_records).map(frame_only)
+
+
+def consecutive_frames(frames: tf.data.Dataset) -> tf.data.Dataset:
+    """(frame t-1, frame t0) of each two consecutive frames, by a scan that carries the previous frame.
+
+    Not `Dataset.window`: a window ends silently when its input fails on its first element, so a file truncated
+    inside its first records gave no pairs and no error (found by `ff3d_tf.data.fuzz`).
+    """
+    none = {k: tf.zeros([d or 0 for d in spec.shape.as_list()], spec.dtype) for k, spec in frames.element_spec.items()}
+
+    def step(state, frame_t0):
+        frame_tm1, have_tm1 = state
+        return (frame_t0, True), (frame_tm1, frame_t0, have_tm1)
+
+    pairs = frames.scan((none, False), step)
+    return pairs.filter(lambda f_tm1, f_t0, have_tm1: have_tm1).map(lambda f_tm1, f_t0, have_tm1: (f_tm1, f_t0))
 
 
 def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool):
     frames = _frames_dataset(path, cfg, inference_only, skip_bad_records)
-
-    def window_to_pair(window):
-        return tf.data.Dataset.zip(window).padded_batch(2)
-
     max_gap_us = int(round(cfg.data.max_frame_gap_s * 1e6))
 
-    def to_example(w):
-        def frame(i):
-            n = w["num_points"][i]
-            return {k: (v[i][:n] if k not in ("pose", "timestamp_micros", "num_points") else v[i])
-                    for k, v in w.items()}
-        f_tm1, f_t0 = frame(0), frame(1)
+    def to_example(f_tm1, f_t0):
         seed = tf.stack([tf.cast(f_t0["timestamp_micros"] % 2147483647, tf.int32), 7])
         return make_pair(f_tm1, f_t0, cfg, seed)
 
-    pairs = frames.window(2, shift=1, drop_remainder=True).flat_map(window_to_pair)
-    pairs = pairs.filter(lambda w: tf.logical_and(w["timestamp_micros"][1] - w["timestamp_micros"][0] > 0,
-                                                  w["timestamp_micros"][1] - w["timestamp_micros"][0] <= max_gap_us))
+    def close_in_time(f_tm1, f_t0):
+        gap_us = f_t0["timestamp_micros"] - f_tm1["timestamp_micros"]
+        return tf.logical_and(gap_us > 0, gap_us <= max_gap_us)
+
+    pairs = consecutive_frames(frames).filter(close_in_time)
     return pairs.map(to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 

@@ -82,15 +82,19 @@ def test_study_knobs(tiny_config):
 
 def test_input_pipeline_names_bad_input(tiny_records, tiny_config, tmp_path):
     import pytest
-    garbage, truncated = str(tmp_path / "garbage.tfrecord"), str(tmp_path / "truncated.tfrecord")
-    for path, middle in ((garbage, b"not a frame"), (truncated, None)):
-        with tf.io.TFRecordWriter(path) as w:
-            for record in (tiny_records[0], middle or tiny_records[1], tiny_records[2]):
-                w.write(record)
-    with open(truncated, "r+b") as f:
-        f.truncate(f.seek(0, 2) - 100)
-    for path, field in ((garbage, "field Frame"), (truncated, "field tfrecord")):
-        with pytest.raises(waymo.FrameDecodeError, match=f"{path}: record unknown: {field}: cannot decode"):
+
+    import corrupt_records
+    garbage = corrupt_records.write_records(str(tmp_path / "garbage.tfrecord"),
+                                            [tiny_records[0], corrupt_records.GARBAGE, tiny_records[2]])
+    truncated = corrupt_records.truncate_file(
+        corrupt_records.write_records(str(tmp_path / "truncated.tfrecord"), tiny_records[:3]), 100)
+    # A file cut inside its first record used to give no pairs and no error (Dataset.window swallowed it).
+    cut_first = corrupt_records.truncate_file(
+        corrupt_records.write_records(str(tmp_path / "cut_first.tfrecord"), tiny_records[:1]), 100)
+    for path, where in ((garbage, "record 1: field Frame: malformed protobuf Frame"),
+                        (truncated, "record 2: field tfrecord: corrupt or truncated"),
+                        (cut_first, "record 0: field tfrecord: corrupt or truncated")):
+        with pytest.raises(waymo.FrameDecodeError, match=f"{path}: {where}"):
             with pairs.input_errors_named([path]):
                 list(pairs.pair_dataset([path], tiny_config))
     # Skipping: the garbage record leaves frames 0 and 2 (0.2 s apart: no pair); the truncated file ends after 2.

@@ -3,10 +3,10 @@ import zlib
 
 import numpy as np
 import pytest
-import tensorflow as tf
 from waymo_open_dataset import dataset_pb2
 from waymo_open_dataset.utils import frame_utils
 
+import corrupt_records
 from ff3d_tf.data import waymo
 from ff3d_tf.data.wod_format import encode_matrix
 
@@ -61,6 +61,30 @@ def test_decode_frame_interface(tiny_records):
     assert all(len(out[k]) == n for k in ("intensity", "elongation", "flow_mps", "class_id", "laser_name"))
 
 
+def test_decoder_steps_alone(tiny_records):
+    import tensorflow as tf
+    frame = dataset_pb2.Frame.FromString(tiny_records[1])
+    source = tf.constant("steps.tfrecord record 0")
+    parsed = waymo.parse_frame(tf.constant(tiny_records[1]), source)
+    assert sorted(parsed.laser_names.numpy()) == [1, 2, 3, 4, 5]
+    assert int(parsed.timestamp_micros) == frame.timestamp_micros
+    pose, vehicle_from_world = waymo.frame_pose(parsed, source)
+    np.testing.assert_array_equal(pose, np.reshape(frame.pose.transform, (4, 4)))
+    np.testing.assert_allclose(vehicle_from_world @ pose, np.eye(4), atol=1e-9)  # closed-form rigid inverse
+    cal = waymo.laser_calibration(parsed, 2, source)
+    front = next(c for c in frame.context.laser_calibrations if c.name == 2)
+    np.testing.assert_array_equal(cal.extrinsic, np.reshape(front.extrinsic.transform, (4, 4)))
+    # To points by hand: a 1 x 4 image, identity extrinsic, inclination 0. Column c of W = 4 looks at azimuth
+    # ((4 - c - 0.5) / 4 * 2 - 1) * pi; column 2 -> -pi/4, so range 2 m lands at (sqrt 2, -sqrt 2, 0).
+    image = np.zeros((1, 4, 4), np.float32)
+    image[0, 2] = [2.0, 0.5, 0.1, 0.0]
+    identity = waymo.LaserCalibration(tf.eye(4, dtype=tf.float64), tf.constant(1), tf.zeros([1], tf.float64),
+                                      tf.constant(0.0, tf.float64), tf.constant(0.0, tf.float64))
+    pixel_rc, values, xyz = waymo.range_image_to_points(tf.constant(image), identity, tf.zeros([1], tf.float64))
+    assert pixel_rc.numpy().tolist() == [[0, 2]] and values.numpy()[0, 1] == 0.5
+    np.testing.assert_allclose(xyz, [[np.sqrt(2), -np.sqrt(2), 0.0]], atol=1e-12)
+
+
 def test_second_return_by_config(tiny_records):
     both = waymo.decode_frame(tiny_records[0], returns=(1, 2))
     first = waymo.decode_frame(tiny_records[0], returns=(1,))
@@ -68,17 +92,8 @@ def test_second_return_by_config(tiny_records):
     assert len(both["points_xyz"]) == len(first["points_xyz"])
 
 
-def _replace_laser_field(record, laser_name, **changes):
-    frame = dataset_pb2.Frame.FromString(record)
-    for laser in frame.lasers:
-        if laser.name == laser_name:
-            for k, v in changes.items():
-                setattr(laser.ri_return1, k, v)
-    return frame.SerializeToString()
-
-
 def test_missing_flow_labels_message(tiny_records):
-    record = _replace_laser_field(tiny_records[1], 2, range_image_flow_compressed=b"")
+    record = corrupt_records.without_flow_labels(tiny_records[1], 2)
     with pytest.raises(waymo.MissingFlowLabelsError) as err:
         waymo.decode_frame(record, source="seg.tfrecord", record_index=3)
     msg = str(err.value)
@@ -88,55 +103,35 @@ def test_missing_flow_labels_message(tiny_records):
     assert np.all(out["class_id"] == -1)
 
 
-@pytest.mark.parametrize("case,field", [
-    ("not_a_frame", "Frame"),
-    ("corrupt_zlib", "lasers[FRONT].ri_return1.range_image_compressed"),
-    ("missing_laser", "lasers[SIDE_LEFT]"),
-    ("missing_calibration", "laser_calibrations[REAR]"),
-    ("shape_vs_calibration", "lasers[TOP].ri_return1.range_image_compressed"),
-    ("non_finite", "lasers[SIDE_RIGHT].ri_return1.range_image_compressed"),
-])
-def test_bad_input_names_file_record_field(tiny_records, case, field):
-    record = tiny_records[1]
-    frame = dataset_pb2.Frame.FromString(record)
-    if case == "not_a_frame":
-        bad = b"\x0a\xff\xff\xff\x0fthis is not a frame"
-    elif case == "corrupt_zlib":
-        bad = _replace_laser_field(record, 2, range_image_compressed=b"\x78\x9cgarbage")
-    elif case == "missing_laser":
-        keep = [las for las in frame.lasers if las.name != 3]
-        del frame.lasers[:]
-        frame.lasers.extend(keep)
-        bad = frame.SerializeToString()
-    elif case == "missing_calibration":
-        keep = [c for c in frame.context.laser_calibrations if c.name != 5]
-        del frame.context.laser_calibrations[:]
-        frame.context.laser_calibrations.extend(keep)
-        bad = frame.SerializeToString()
-    elif case == "shape_vs_calibration":
-        cal = [c for c in frame.context.laser_calibrations if c.name == 1][0]
-        cal.beam_inclinations.append(0.1)  # one more beam than the range image has rows
-        bad = frame.SerializeToString()
-    else:
-        h, w = 24, 72
-        img = np.full((h, w, 4), 5.0, np.float32)
-        img[3, 4, 1] = np.nan
-        bad = _replace_laser_field(record, 4, range_image_compressed=encode_matrix(img))
+@pytest.mark.parametrize("case", sorted(corrupt_records.CASES))
+def test_bad_input_names_file_record_field(tiny_records, case):
+    damage, field = corrupt_records.CASES[case]
     with pytest.raises(waymo.FrameDecodeError) as err:
-        waymo.decode_frame(bad, source="bad.tfrecord", record_index=7)
+        waymo.decode_frame(damage(tiny_records[1]), source="bad.tfrecord", record_index=7)
     msg = str(err.value)
-    assert "bad.tfrecord" in msg and "record 7" in msg and field in msg, msg
+    assert "bad.tfrecord: record 7: field " + field in msg, msg
+    assert err.value.field == field and err.value.record_index == 7
+
+
+def test_error_tags_are_the_projects_own(tiny_records):
+    # The decoder's checks carry field and source in a tag this module writes and reads back; nothing depends on
+    # TensorFlow's wording around it.
+    text = "anything TF writes [<<FRAME_DECODE_ERROR|pose|error|not rigid|dir/a b.tfrecord record 12" \
+           "|END_FRAME_DECODE_ERROR>>] more TF text"
+    tagged = waymo.parse_tagged_error(text)
+    assert tagged == waymo.TaggedError("pose", "error", "not rigid", "dir/a b.tfrecord record 12")
+    assert waymo.parse_tagged_error("InvalidArgumentError: something else") is None
+    # A codec failure has no tag: the field comes from re-reading the record in Python.
+    assert waymo.diagnose_record(corrupt_records.corrupt_zlib(tiny_records[1], 2))[0] == \
+        "lasers[FRONT].ri_return1.range_image_compressed"
+    assert waymo.codec_fault(tiny_records[1]) is None
 
 
 def test_truncated_tfrecord_and_skip_option(tiny_segment, tiny_records, tmp_path):
     # A file: good record, a record that is not a Frame, good record, then a truncated tail.
-    path = str(tmp_path / "mixed.tfrecord")
-    with tf.io.TFRecordWriter(path) as w:
-        w.write(tiny_records[0])
-        w.write(b"garbage that is not a frame")
-        w.write(tiny_records[1])
-    with open(path, "ab") as f:
-        f.write(open(tiny_segment, "rb").read()[:1000])  # truncated record
+    path = corrupt_records.write_records(str(tmp_path / "mixed.tfrecord"),
+                                         [tiny_records[0], corrupt_records.GARBAGE, tiny_records[1]])
+    corrupt_records.append_partial_record(path, tiny_segment, 1000)  # truncated record
     with pytest.raises(waymo.FrameDecodeError) as err:
         list(waymo.read_frames(path))
     assert "mixed.tfrecord" in str(err.value) and "record 1" in str(err.value)

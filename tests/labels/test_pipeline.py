@@ -140,12 +140,10 @@ def test_points_in_boxes_matches_brute_force():
 
 
 def test_annotate_segment_bad_record(tiny_records, tmp_path):
-    import tensorflow as tf
+    import corrupt_records
     from ff3d_tf.labels.pipeline import annotate_segment
-    path = str(tmp_path / "mixed.tfrecord")
-    with tf.io.TFRecordWriter(path) as w:
-        for record in (tiny_records[0], tiny_records[1], b"not a frame", tiny_records[2], tiny_records[3]):
-            w.write(record)
+    path = corrupt_records.write_records(str(tmp_path / "mixed.tfrecord"), [
+        tiny_records[0], tiny_records[1], corrupt_records.GARBAGE, tiny_records[2], tiny_records[3]])
     out = str(tmp_path / "out" / "mixed.tfrecord")
     with pytest.raises(waymo.FrameDecodeError, match="mixed.tfrecord: record 2"):
         annotate_segment(path, out, returns=(1,))
