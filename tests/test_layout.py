@@ -1,8 +1,9 @@
-"""The repository stands alone: no tracked file reads outside the clone (e.g. the developers' shared folder beside it)."""
+"""The repository stands alone: no tracked file reads outside the clone (e.g. the developers' shared folder
+beside it)."""
 import os
 import subprocess
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))  # the checkout, also under Bazel
 NEEDLE = "../" + "shared"  # written in two parts so that this file does not match itself
 
 

@@ -1,1 +1,2 @@
-"""Label construction: per-point flow bootstrapped from tracked 3D boxes (`box_flow`), at scale with Beam (`pipeline`)."""
+"""Label construction: per-point flow bootstrapped from tracked 3D boxes (`box_flow`), at scale with Beam
+(`pipeline`)."""

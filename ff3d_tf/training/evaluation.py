@@ -39,7 +39,7 @@ def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_
     if max_pairs:
         ds = ds.take(max_pairs)
     t0, done = time.time(), 0
-    with pairs.input_errors_named(files):  # a bad record: FrameDecodeError naming file, record and field
+    with pairs.input_errors_named(files, pairs.decode_options(cfg)):  # a bad record: file, record and field named
         for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base):
             flow_pred, valid = predictor.predict(batch, ex)
             zero_flow = tf.zeros_like(ex["flow_mps_t0"])

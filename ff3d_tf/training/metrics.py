@@ -1,6 +1,7 @@
 """Scene-flow metrics as a Keras metric that keeps sums and counts (adds up over batches and replicas).
 
-`SceneFlowMetrics(moving_threshold_mps=schema.MOVING_THRESHOLD_MPS)`; `update_state(flow_true, flow_pred, class_id)`; `result()` -> dict:
+`SceneFlowMetrics(moving_threshold_mps=schema.MOVING_THRESHOLD_MPS)`; `update_state(flow_true, flow_pred, class_id)`;
+`result()` -> dict:
 - "{cls}/{subset}/{stat}": cls in background, vehicle, pedestrian, sign, cyclist, all (= classes 0..4); subset in all,
   moving, stationary (moving: |flow_true| >= threshold); stat in mean_l2_mps, mean_l2_mph, frac_l2_le_0.1,
   frac_l2_le_1.0, count (paper Table 2).

@@ -85,7 +85,8 @@ def variants(study: str, num_train_segments: int, values: tuple[float, ...] = ()
     if study == "point_density":
         return [Variant(f"points_{v:g}", v, input_changes={"data.point_keep_fraction": v}) for v in sorted(values)]
     if study == "ground_removal":
-        return [Variant("with_ground"), Variant("ground_removed", input_changes={"data.remove_ground_below_z_m": GROUND_REMOVAL_Z_M})]
+        return [Variant("with_ground"),
+                Variant("ground_removed", input_changes={"data.remove_ground_below_z_m": GROUND_REMOVAL_Z_M})]
     if study == "class_ablation":
         return [Variant("supervised")] + [Variant(f"{c}_{m}", train_changes={"data.class_ablation": f"{c}_{m}"})
                                           for c in TABLE4_CLASSES for m in ("stationary", "ignored")]
