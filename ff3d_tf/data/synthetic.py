@@ -297,8 +297,20 @@ class SegmentSpec:
     start_time_s: float = 0.0
 
 
+@dataclasses.dataclass
+class _FrameScene:
+    """What one frame sees: time, ego pose, the agents near the ego and their world poses, which are labelled."""
+    index: int
+    t: float
+    pose: np.ndarray  # vehicle -> world at t
+    near: list  # agents within reach of the lidars
+    poses_t: dict  # track_id -> (centre [3] world, heading world) at t
+    labelled_now: set  # track ids with a laser label in this frame
+
+
 def generate_segment(spec: SegmentSpec):
-    """Yields serialized WOD `Frame` records (bytes) of one segment."""
+    """Yields serialized WOD `Frame` records (bytes) of one segment: scene, then per frame header, lidar images and
+    laser labels."""
     from waymo_open_dataset import dataset_pb2
 
     rng = np.random.default_rng(spec.seed)
@@ -309,105 +321,133 @@ def generate_segment(spec: SegmentSpec):
     t0_micros = 1_550_000_000_000_000 + spec.seed * 1_000_000_000
     prev_labelled: set[str] = set()
     for i in range(spec.num_frames):
-        t = spec.start_time_s + i * DT_S
-        t_prev = t - DT_S
+        scene = _frame_scene(i, spec.start_time_s + i * DT_S, road, agents, ego_speed)
         frame = dataset_pb2.Frame()
-        frame.timestamp_micros = t0_micros + int(round(t * 1e6))
-        pose = _ego_pose(road, t, ego_speed)
-        frame.pose.transform[:] = wod_format.encode_transform(pose)
-        frame.context.name = name
-        for lidar in lidars:
-            cal = frame.context.laser_calibrations.add()
-            cal.name = lidar.name
-            cal.extrinsic.transform[:] = wod_format.encode_transform(lidar.extrinsic)
-            if lidar.beam_inclinations is not None:
-                cal.beam_inclinations[:] = [float(v) for v in lidar.beam_inclinations]
-            else:
-                cal.beam_inclination_min, cal.beam_inclination_max = lidar.inclination_min, lidar.inclination_max
-        # Object poses at t and t-1 (world).
-        ego_xy = pose[:3, 3]
-        alive = [a for a in agents if a.alive(t)]
-        poses_t = {a.track_id: a.pose(road, t) for a in alive}
-        near = [a for a in alive if np.linalg.norm(poses_t[a.track_id][0][:2] - ego_xy[:2]) <
-                TOP_MAX_RANGE_M + np.linalg.norm(a.size)]
-        labelled_now = {a.track_id for a in near if a.labelled and a.class_id > 0 and
-                        np.linalg.norm(poses_t[a.track_id][0][:2] - ego_xy[:2]) <= LABEL_RANGE_M}
-        boxes = [(j, poses_t[a.track_id][0], poses_t[a.track_id][1], a.size / 2) for j, a in enumerate(near)]
+        _frame_header(frame, scene, t0_micros, name, lidars)
         point_counts: dict[str, int] = {}
-        vehicle_from_world = np.linalg.inv(pose)
         for lidar in lidars:
-            laser = frame.lasers.add()
-            laser.name = lidar.name
-            top_pose = _top_pixel_pose(lidar, road, ego_speed, t) if lidar.name == 1 else None
-            ranges, hits, origins_w, dirs_w = _scan(lidar, top_pose, pose, boxes)
-            h, w = lidar.height, lidar.width
-            range_img = np.full((h, w, 4), -1.0, np.float32)
-            flow_img = np.zeros((h, w, 4), np.float32)
-            flow_img[..., 3] = schema.CLASS_NO_LABEL
-            valid = np.isfinite(ranges) & (ranges > 0.5)
-            range_img[..., 0] = np.where(valid, ranges, -1.0)
-            mat = np.full(hits.shape, "ground", dtype=object)
-            classes = np.zeros(hits.shape, np.int32)
-            flow_v = np.zeros(hits.shape + (3,), np.float64)
-            points_w = origins_w + dirs_w * np.where(valid, ranges, 0.0)[..., None]
-            for j, a in enumerate(near):
-                sel = valid & (hits == j)
-                if not sel.any():
-                    continue
-                mat[sel] = a.material
-                if a.class_id == 0 or not a.labelled or a.track_id not in labelled_now:
-                    continue
-                point_counts[a.track_id] = point_counts.get(a.track_id, 0) + int(sel.sum())
-                if a.track_id not in prev_labelled or i == 0 or not a.alive(t_prev):
-                    classes[sel] = schema.CLASS_NO_LABEL
-                    continue
-                c0, h0 = poses_t[a.track_id]
-                c1, h1 = a.pose(road, t_prev)
-                moved = _box_matrix(c1, h1) @ np.linalg.inv(_box_matrix(c0, h0))  # world point at t0 -> t-1
-                p0 = points_w[sel]
-                p1 = p0 @ moved[:3, :3].T + moved[:3, 3]
-                flow_v[sel] = ((p0 - p1) / DT_S) @ vehicle_from_world[:3, :3].T
-                classes[sel] = a.class_id
-            intensity = np.zeros(hits.shape, np.float32)
-            for material, (mean, std) in _INTENSITY.items():
-                sel = mat == material
-                if sel.any():
-                    intensity[sel] = np.clip(rng.normal(mean, std, int(sel.sum())), 0.0, 1.5)
-            range_img[..., 1] = np.where(valid, intensity, 0.0)
-            range_img[..., 2] = np.where(valid, np.clip(rng.gamma(2.0, 0.05, hits.shape), 0.0, 1.5), 0.0)
-            flow_img[..., :3] = np.where(valid[..., None], flow_v, 0.0)
-            flow_img[..., 3] = np.where(valid, classes, schema.CLASS_NO_LABEL)
-            ri = laser.ri_return1
-            ri.range_image_compressed = wod_format.encode_matrix(range_img)
-            ri.range_image_flow_compressed = wod_format.encode_matrix(flow_img)
-            ri.camera_projection_compressed = wod_format.encode_matrix(np.zeros((h, w, 6), np.int32))
-            if lidar.name == 1:
-                ri.range_image_pose_compressed = wod_format.encode_matrix(top_pose)
-            # No second returns in this scene (empty range image: all -1), written so return 2 decodes.
-            empty = np.full((h, w, 4), -1.0, np.float32)
-            empty[..., 1:3] = 0.0
-            laser.ri_return2.range_image_compressed = wod_format.encode_matrix(empty)
-            laser.ri_return2.range_image_flow_compressed = wod_format.encode_matrix(
-                np.concatenate([np.zeros((h, w, 3), np.float32), np.full((h, w, 1), -1.0, np.float32)], -1))
-            laser.ri_return2.camera_projection_compressed = wod_format.encode_matrix(np.zeros((h, w, 6), np.int32))
-        for a in near:
-            if a.track_id not in labelled_now:
-                continue
-            center_w, heading_w = poses_t[a.track_id]
-            c_prev, _ = a.pose(road, t_prev)
-            label = frame.laser_labels.add()
-            center_v = vehicle_from_world[:3, :3] @ center_w + vehicle_from_world[:3, 3]
-            heading_v = heading_w - np.arctan2(pose[1, 0], pose[0, 0])
-            label.box.center_x, label.box.center_y, label.box.center_z = (float(v) for v in center_v)
-            label.box.length, label.box.width, label.box.height = (float(v) for v in a.size)
-            label.box.heading = float(np.arctan2(np.sin(heading_v), np.cos(heading_v)))
-            vel_v = vehicle_from_world[:3, :3] @ ((center_w - c_prev) / DT_S)
-            label.metadata.speed_x, label.metadata.speed_y = float(vel_v[0]), float(vel_v[1])
-            label.type = a.class_id  # label.proto Type uses the flow class numbers for these four types
-            label.id = f"{name}_{a.track_id}"
-            label.num_lidar_points_in_box = point_counts.get(a.track_id, 0)
-        prev_labelled = labelled_now
+            _write_laser(frame.lasers.add(), lidar, scene, road, ego_speed, prev_labelled, point_counts, rng)
+        _laser_labels(frame, scene, road, name, point_counts)
+        prev_labelled = scene.labelled_now
         yield frame.SerializeToString()
+
+
+def _frame_scene(index: int, t: float, road: Road, agents: list, ego_speed: float) -> _FrameScene:
+    pose = _ego_pose(road, t, ego_speed)
+    ego_xy = pose[:2, 3]
+    alive = [a for a in agents if a.alive(t)]
+    poses_t = {a.track_id: a.pose(road, t) for a in alive}
+    near = [a for a in alive if np.linalg.norm(poses_t[a.track_id][0][:2] - ego_xy) <
+            TOP_MAX_RANGE_M + np.linalg.norm(a.size)]
+    labelled_now = {a.track_id for a in near if a.labelled and a.class_id > 0 and
+                    np.linalg.norm(poses_t[a.track_id][0][:2] - ego_xy) <= LABEL_RANGE_M}
+    return _FrameScene(index, t, pose, near, poses_t, labelled_now)
+
+
+def _frame_header(frame, scene: _FrameScene, t0_micros: int, name: str, lidars) -> None:
+    """Timestamp, vehicle pose, segment name and every lidar's calibration."""
+    frame.timestamp_micros = t0_micros + int(round(scene.t * 1e6))
+    frame.pose.transform[:] = wod_format.encode_transform(scene.pose)
+    frame.context.name = name
+    for lidar in lidars:
+        cal = frame.context.laser_calibrations.add()
+        cal.name = lidar.name
+        cal.extrinsic.transform[:] = wod_format.encode_transform(lidar.extrinsic)
+        if lidar.beam_inclinations is not None:
+            cal.beam_inclinations[:] = [float(v) for v in lidar.beam_inclinations]
+        else:
+            cal.beam_inclination_min, cal.beam_inclination_max = lidar.inclination_min, lidar.inclination_max
+
+
+def _point_labels(scene: _FrameScene, road: Road, valid, hits, points_w, prev_labelled: set, point_counts: dict):
+    """Per pixel: material, flow class and flow (m/s, vehicle frame at t) from the agent each ray hit.
+
+    A labelled agent without a label in the previous frame (or at the first frame) gets class -1: no box at t-1.
+    """
+    mat = np.full(hits.shape, "ground", dtype=object)
+    classes = np.zeros(hits.shape, np.int32)
+    flow_v = np.zeros(hits.shape + (3,), np.float64)
+    vehicle_from_world = np.linalg.inv(scene.pose)
+    t_prev = scene.t - DT_S
+    for j, a in enumerate(scene.near):
+        sel = valid & (hits == j)
+        if not sel.any():
+            continue
+        mat[sel] = a.material
+        if a.class_id == 0 or not a.labelled or a.track_id not in scene.labelled_now:
+            continue
+        point_counts[a.track_id] = point_counts.get(a.track_id, 0) + int(sel.sum())
+        if a.track_id not in prev_labelled or scene.index == 0 or not a.alive(t_prev):
+            classes[sel] = schema.CLASS_NO_LABEL
+            continue
+        c0, h0 = scene.poses_t[a.track_id]
+        c1, h1 = a.pose(road, t_prev)
+        moved = _box_matrix(c1, h1) @ np.linalg.inv(_box_matrix(c0, h0))  # world point at t0 -> t-1
+        p0 = points_w[sel]
+        p1 = p0 @ moved[:3, :3].T + moved[:3, 3]
+        flow_v[sel] = ((p0 - p1) / DT_S) @ vehicle_from_world[:3, :3].T
+        classes[sel] = a.class_id
+    return mat, classes, flow_v
+
+
+def _write_laser(laser, lidar: LidarSpec, scene: _FrameScene, road: Road, ego_speed: float, prev_labelled: set,
+                 point_counts: dict, rng: np.random.Generator) -> None:
+    """One lidar's range images (both returns), flow images, camera projections and TOP pixel pose."""
+    laser.name = lidar.name
+    top_pose = _top_pixel_pose(lidar, road, ego_speed, scene.t) if lidar.name == 1 else None
+    boxes = [(j, scene.poses_t[a.track_id][0], scene.poses_t[a.track_id][1], a.size / 2)
+             for j, a in enumerate(scene.near)]
+    ranges, hits, origins_w, dirs_w = _scan(lidar, top_pose, scene.pose, boxes)
+    h, w = lidar.height, lidar.width
+    valid = np.isfinite(ranges) & (ranges > 0.5)
+    points_w = origins_w + dirs_w * np.where(valid, ranges, 0.0)[..., None]
+    mat, classes, flow_v = _point_labels(scene, road, valid, hits, points_w, prev_labelled, point_counts)
+    intensity = np.zeros(hits.shape, np.float32)
+    for material, (mean, std) in _INTENSITY.items():
+        sel = mat == material
+        if sel.any():
+            intensity[sel] = np.clip(rng.normal(mean, std, int(sel.sum())), 0.0, 1.5)
+    range_img = np.full((h, w, 4), -1.0, np.float32)
+    range_img[..., 0] = np.where(valid, ranges, -1.0)
+    range_img[..., 1] = np.where(valid, intensity, 0.0)
+    range_img[..., 2] = np.where(valid, np.clip(rng.gamma(2.0, 0.05, hits.shape), 0.0, 1.5), 0.0)
+    flow_img = np.zeros((h, w, 4), np.float32)
+    flow_img[..., :3] = np.where(valid[..., None], flow_v, 0.0)
+    flow_img[..., 3] = np.where(valid, classes, schema.CLASS_NO_LABEL)
+    ri = laser.ri_return1
+    ri.range_image_compressed = wod_format.encode_matrix(range_img)
+    ri.range_image_flow_compressed = wod_format.encode_matrix(flow_img)
+    ri.camera_projection_compressed = wod_format.encode_matrix(np.zeros((h, w, 6), np.int32))
+    if lidar.name == 1:
+        ri.range_image_pose_compressed = wod_format.encode_matrix(top_pose)
+    # No second returns in this scene (empty range image: all -1), written so return 2 decodes.
+    empty = np.full((h, w, 4), -1.0, np.float32)
+    empty[..., 1:3] = 0.0
+    laser.ri_return2.range_image_compressed = wod_format.encode_matrix(empty)
+    laser.ri_return2.range_image_flow_compressed = wod_format.encode_matrix(
+        np.concatenate([np.zeros((h, w, 3), np.float32), np.full((h, w, 1), -1.0, np.float32)], -1))
+    laser.ri_return2.camera_projection_compressed = wod_format.encode_matrix(np.zeros((h, w, 6), np.int32))
+
+
+def _laser_labels(frame, scene: _FrameScene, road: Road, name: str, point_counts: dict) -> None:
+    """Tracked 3D boxes (vehicle frame at t) with speed, type, track id and point count."""
+    vehicle_from_world = np.linalg.inv(scene.pose)
+    for a in scene.near:
+        if a.track_id not in scene.labelled_now:
+            continue
+        center_w, heading_w = scene.poses_t[a.track_id]
+        c_prev, _ = a.pose(road, scene.t - DT_S)
+        label = frame.laser_labels.add()
+        center_v = vehicle_from_world[:3, :3] @ center_w + vehicle_from_world[:3, 3]
+        heading_v = heading_w - np.arctan2(scene.pose[1, 0], scene.pose[0, 0])
+        label.box.center_x, label.box.center_y, label.box.center_z = (float(v) for v in center_v)
+        label.box.length, label.box.width, label.box.height = (float(v) for v in a.size)
+        label.box.heading = float(np.arctan2(np.sin(heading_v), np.cos(heading_v)))
+        vel_v = vehicle_from_world[:3, :3] @ ((center_w - c_prev) / DT_S)
+        label.metadata.speed_x, label.metadata.speed_y = float(vel_v[0]), float(vel_v[1])
+        label.type = a.class_id  # label.proto Type uses the flow class numbers for these four types
+        label.id = f"{name}_{a.track_id}"
+        label.num_lidar_points_in_box = point_counts.get(a.track_id, 0)
 
 
 def _column_time_offsets(width: int) -> np.ndarray:
