@@ -1,0 +1,185 @@
+"""Portable XLA export: the artifacts, run by JAX where TensorFlow cannot be imported, give TF's forward."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax", reason="the xla extra (pip install .[xla]) provides jax")
+
+import tensorflow as tf  # noqa: E402
+
+from conftest import ROOT  # noqa: E402
+from ff3d_tf.inference import xla_artifact  # noqa: E402
+from ff3d_tf.inference.xla_export import export_forward, model_weights  # noqa: E402
+from ff3d_tf.model import build_model  # noqa: E402
+from ff3d_tf.model.fastflow3d import INPUT_KEYS  # noqa: E402
+
+POINTS = (700, 1500)  # tiny config buckets (base 1024): 1024 and 1536
+
+# Run as `python -c`: makes `import tensorflow` (and Keras, which would import it) fail, then runs the given script.
+NO_TF_SHIM = """
+import runpy, sys
+for name in ("tensorflow", "keras", "tf_keras"):
+    sys.modules[name] = None  # an import of a None entry raises ImportError
+try:
+    import tensorflow
+    raise SystemExit("the shim failed to block tensorflow")
+except ImportError:
+    pass
+script, sys.argv = sys.argv[1], sys.argv[1:]
+runpy.run_path(script, run_name="__main__")
+"""
+
+# The JAX side of the comparison: reads the export and the saved inputs, writes the artifact's outputs.
+RUN_ON_INPUTS = """
+import sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from ff3d_tf.inference import xla_artifact
+export_dir, inputs_path, outputs_path = sys.argv[2:5]
+manifest = xla_artifact.read_manifest(export_dir)
+weights = xla_artifact.load_weights(export_dir, manifest)
+saved = np.load(inputs_path)
+outputs = {}
+for i, entry in enumerate(manifest["artifacts"]):
+    exported = xla_artifact.load_forward(export_dir, entry, len(weights))
+    assert exported.platforms == ("cpu", "cuda"), exported.platforms
+    out = xla_artifact.CompiledForward(exported, weights).numpy([saved[f"{i}_{k}"] for k in manifest["input_keys"]])
+    outputs.update({f"{i}_{k}": v for k, v in out.items()})
+assert "tensorflow" not in sys.modules or sys.modules["tensorflow"] is None
+np.savez(outputs_path, **outputs)
+"""
+
+
+def _run_without_tf(script_path, *args):
+    out = subprocess.run([sys.executable, "-c", NO_TF_SHIM, script_path, *args], cwd=ROOT, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
+
+
+@pytest.fixture(scope="module")
+def exported_tiny(tiny_config, tmp_path_factory):
+    """A tiny model, exported. Kernels keep their Glorot initialisation; every other weight (biases, BatchNorm scales,
+    offsets and statistics) is moved off its 0/1 initial value, so that a weight passed in the wrong place shows."""
+    model = build_model(tiny_config)
+    rng = np.random.default_rng(3)
+    for v in model_weights(model):
+        if "kernel" not in v.path:
+            centre = 1.0 if "variance" in v.path or "gamma" in v.path else 0.0
+            v.assign(rng.uniform(centre - 0.2, centre + 0.2, v.shape).astype(np.float32))
+    out_dir = str(tmp_path_factory.mktemp("xla"))
+    manifest = export_forward(tiny_config, model, POINTS, out_dir, precisions=("float32", "tf32"), log=lambda _: None)
+    return model, out_dir, manifest
+
+
+def test_artifacts_equal_tf_forward_without_tensorflow(exported_tiny, tmp_path):
+    model, out_dir, manifest = exported_tiny
+    assert [(e["points"], e["padded_points"], e["precision"]) for e in manifest["artifacts"]] == [
+        (700, 1024, "float32"), (1500, 1536, "float32"), (700, 1024, "tf32"), (1500, 1536, "tf32")]
+    # One bucket (the runner test below compiles the other): a JAX compile costs seconds on a busy CPU.
+    float32 = [e for e in manifest["artifacts"] if e["precision"] == "float32" and e["points"] == 1500]
+    export_dir = tmp_path / "float32_only"
+    export_dir.mkdir()
+    for name in (xla_artifact.WEIGHTS_NAME, *(e["file"] for e in float32)):
+        os.symlink(os.path.join(out_dir, name), export_dir / name)
+    (export_dir / xla_artifact.MANIFEST_NAME).write_text(json.dumps({**manifest, "artifacts": float32}))
+    rng = np.random.default_rng(0)
+    forward = tf.function(lambda x: model(x, training=False), jit_compile=True)
+    inputs, reference = {}, {}
+    for i, entry in enumerate(float32):
+        arrays = xla_artifact.random_inputs(manifest, entry, rng)
+        inputs.update({f"{i}_{k}": a for k, a in zip(INPUT_KEYS, arrays)})
+        reference[i] = forward(dict(zip(INPUT_KEYS, arrays)))
+    np.savez(tmp_path / "inputs.npz", **inputs)
+    script = tmp_path / "run_on_inputs.py"
+    script.write_text(RUN_ON_INPUTS)
+    _run_without_tf(str(script), ROOT, str(export_dir), str(tmp_path / "inputs.npz"), str(tmp_path / "outputs.npz"))
+    got = np.load(tmp_path / "outputs.npz")
+    for i, entry in enumerate(float32):
+        flow_ref = reference[i]["flow_mps"].numpy()
+        valid_ref = reference[i]["point_valid"].numpy()
+        # The random clouds cover the grid: every real point is valid, every padding point is not.
+        assert valid_ref.sum() == entry["points"] and not valid_ref[0, entry["points"]:].any()
+        assert np.abs(flow_ref).max() > 0.1  # random weights: a real (non-zero) flow to compare
+        np.testing.assert_array_equal(got[f"{i}_point_valid"], valid_ref)
+        np.testing.assert_allclose(got[f"{i}_flow_mps"], flow_ref, rtol=0, atol=1e-4)
+
+
+@pytest.mark.slow
+def test_paper_config_artifact_equals_tf_forward_without_tensorflow(tmp_path):
+    """The full-size model (512 x 512 grid, the point loop over chunks) at its smallest bucket, 12,000 points."""
+    from ff3d_tf.config import load_config
+    cfg = load_config(os.path.join(ROOT, "configs", "fastflow3d_waymo.yaml"))
+    model = build_model(cfg)
+    manifest = export_forward(cfg, model, [12000], str(tmp_path / "export"), log=lambda _: None)
+    (entry,) = manifest["artifacts"]
+    arrays = xla_artifact.random_inputs(manifest, entry, np.random.default_rng(1))
+    reference = tf.function(lambda x: model(x, training=False), jit_compile=True)(dict(zip(INPUT_KEYS, arrays)))
+    np.savez(tmp_path / "inputs.npz", **{f"0_{k}": a for k, a in zip(INPUT_KEYS, arrays)})
+    script = tmp_path / "run_on_inputs.py"
+    script.write_text(RUN_ON_INPUTS)
+    _run_without_tf(str(script), ROOT, str(tmp_path / "export"), str(tmp_path / "inputs.npz"),
+                    str(tmp_path / "outputs.npz"))
+    got = np.load(tmp_path / "outputs.npz")
+    assert reference["point_valid"].numpy().sum() == 12000
+    np.testing.assert_array_equal(got["0_point_valid"], reference["point_valid"].numpy())
+    np.testing.assert_allclose(got["0_flow_mps"], reference["flow_mps"].numpy(), rtol=0, atol=1e-4)
+
+
+def test_runner_without_tensorflow_writes_latency_json(exported_tiny, tmp_path):
+    _, out_dir, _ = exported_tiny
+    out_json = tmp_path / "latency.json"
+    stdout = _run_without_tf(os.path.join(ROOT, "tools", "run_xla.py"), out_dir, "--runs", "2", "--warmup", "1",
+                             "--points", "700", "--precisions", "float32", "--out", str(out_json))
+    result = json.loads(out_json.read_text())
+    assert result["platform"] == "cpu" and result["num_weights"] == len(json.load(
+        open(os.path.join(out_dir, xla_artifact.MANIFEST_NAME)))["weights"])
+    rows = {(r["points"], r["precision"]): r for r in result["latency"]}
+    assert sorted(rows) == [(700, "float32")]
+    for r in rows.values():
+        assert r["runs"] == 2 and 0 < r["min_ms"] <= min(r["median_ms"], r["mean_ms"]) and r["median_host_ms"] > 0
+    assert "paper P100 ms" in stdout and "| 700 | float32 |" in stdout
+
+
+def test_precision_is_written_into_the_program(exported_tiny):
+    """TF32 off -> convolutions at HIGHEST precision (float32-exact on GPUs); the tf32 artifact leaves them at the
+    default precision (not printed)."""
+    from jax import export
+    _, out_dir, manifest = exported_tiny
+    for entry in manifest["artifacts"]:
+        with open(os.path.join(out_dir, entry["file"]), "rb") as f:
+            text = export.deserialize(bytearray(f.read())).mlir_module()
+        assert "stablehlo.convolution" in text
+        assert ("precision HIGHEST" in text) == (entry["precision"] == "float32")
+
+
+def test_bad_exports_are_named(exported_tiny, tmp_path):
+    _, out_dir, manifest = exported_tiny
+    (tmp_path / xla_artifact.MANIFEST_NAME).write_text(json.dumps({**manifest, "format": "other/9"}))
+    with pytest.raises(xla_artifact.ExportFormatError, match="manifest.json: field format"):
+        xla_artifact.read_manifest(str(tmp_path))
+    wrong = [dict(w) for w in manifest["weights"]]
+    wrong[1]["shape"] = [w + 1 for w in wrong[1]["shape"]]
+    with pytest.raises(xla_artifact.ExportFormatError, match=r"weights.npz: array w001 \(.*\) is float32"):
+        xla_artifact.load_weights(out_dir, {**manifest, "weights": wrong})
+    with pytest.raises(ValueError, match="precision 'fp8' unknown"):
+        export_forward(None, None, [10], str(tmp_path / "x"), precisions=("fp8",))
+
+
+def test_latency_table_beside_the_paper():
+    result = {"device": "H200", "platform": "gpu", "jax": "0.11.2", "skipped": [],
+              "latency": [{"points": 32000, "precision": "float32", "median_ms": 4.0, "mean_ms": 4.1, "min_ms": 3.9,
+                           "median_host_ms": 5.0},
+                          {"points": 1000000, "precision": "tf32", "median_ms": 12.5, "mean_ms": 12.6,
+                           "min_ms": 12.0, "median_host_ms": 15.0},
+                          {"points": 5000, "precision": "float32", "median_ms": 1.0, "mean_ms": 1.0, "min_ms": 1.0,
+                           "median_host_ms": 1.0}]}
+    rows = xla_artifact.latency_table(result).splitlines()[4:]
+    # 49.3 / 4.0 = 12.3x (target 10x met); 98.1 / 12.5 = 7.8x (not met); 5,000 points: no paper figure.
+    assert rows[0] == "| 32,000 | float32 | 4.00 | 4.10 | 3.90 | 5.00 | 49.3 | 12.3x | yes |"
+    assert rows[1] == "| 1,000,000 | tf32 | 12.50 | 12.60 | 12.00 | 15.00 | 98.1 | 7.8x | no |"
+    assert rows[2].endswith("| - | - | - |")

@@ -1,0 +1,53 @@
+"""Run and time exported forward artifacts with JAX alone (no TensorFlow): python tools/run_xla.py DIR [--out J]
+
+Loads DIR (written by tools/export_xla.py), compiles each artifact for the default JAX device (GPU if JAX has one),
+runs it on random clouds of its size and prints the median latency of --runs passes after --warmup, in a table beside
+the paper's P100 figures; --out writes the same as JSON. Imports numpy, JAX and the TensorFlow-free
+ff3d_tf.inference.xla_artifact only.
+"""
+import argparse
+import json
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from ff3d_tf.inference import xla_artifact  # noqa: E402
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("export_dir")
+    p.add_argument("--runs", type=int, default=20)
+    p.add_argument("--warmup", type=int, default=3)
+    p.add_argument("--precisions", default="", help="only these (comma-separated); default all in the manifest")
+    p.add_argument("--points", default="", help="only these cloud sizes (comma-separated); default all")
+    p.add_argument("--budget_s", type=float, default=None, help="start no artifact after this many seconds")
+    p.add_argument("--out", default=None, help="JSON file of the results")
+    args = p.parse_args()
+    try:
+        points = [int(v) for v in args.points.split(",") if v]
+    except ValueError:
+        p.error(f"--points must be comma-separated integers, got {args.points!r}")
+
+    def save(result):  # after every artifact, so that a run stopped from outside keeps what it measured
+        if args.out:
+            os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+            with open(args.out, "w") as f:
+                json.dump(result, f, indent=1)
+
+    try:
+        result = xla_artifact.run_export(args.export_dir, args.runs, args.warmup,
+                                         [v for v in args.precisions.split(",") if v], points, args.budget_s,
+                                         on_row=save)
+    except xla_artifact.ExportFormatError as e:
+        sys.exit(f"export error: {e}")
+    if not result["latency"] and not result["skipped"]:
+        sys.exit(f"no artifact in {args.export_dir} matches --precisions {args.precisions!r} --points {args.points!r}")
+    result["table"] = xla_artifact.latency_table(result)
+    print(result["table"], flush=True)
+    save(result)
+
+
+if __name__ == "__main__":
+    main()
