@@ -11,7 +11,7 @@ install: $(STAMP)
 $(STAMP): setup.py constraints.txt Makefile
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -c constraints.txt -e ".[dev,beam]"
+	$(PY) -m pip install -q -c constraints.txt -e ".[dev,beam,xla]"
 	$(PY) -m pip install -q --no-deps waymo-open-dataset-tf-2-12-0==1.6.7
 	touch $(STAMP)
 
@@ -26,3 +26,19 @@ demo: install
 
 clean:
 	rm -rf demo_out .pytest_cache
+
+# Bazel (README "Bazel"): Debian's bazel-bootstrap (Bazel 4.2.3) runs the tests offline on the same .venv, one target
+# per test file; tests marked slow stay out (--test_tag_filters in .bazelrc). BAZEL_STARTUP takes startup options
+# (e.g. --output_base=DIR), BAZEL_FLAGS test options, BAZEL_TARGETS the target patterns.
+BAZEL ?= bazel
+BAZEL_STARTUP ?=
+BAZEL_FLAGS ?=
+BAZEL_TARGETS ?= //...
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: bazel-test
+bazel-test: install
+	@command -v $(BAZEL) >/dev/null 2>&1 || $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -q bazel-bootstrap \
+		|| { $(SUDO) apt-get update -q && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -q bazel-bootstrap; }
+	$(PY) tools/check_bazel_targets.py
+	$(BAZEL) $(BAZEL_STARTUP) test --nocache_test_results $(BAZEL_FLAGS) $(BAZEL_TARGETS)

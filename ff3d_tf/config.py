@@ -228,15 +228,15 @@ class ExperimentConfig:
             yaml.safe_dump(json.loads(json.dumps(self.to_dict())), f, sort_keys=False)
 
 
-def _coerce(value: Any, annotation: Any, where: str) -> Any:
+def _coerce(value: Any, annotation: Any, where: str, current: Any = None) -> Any:
     """Checks/coerces an override against the declared type of the field it replaces; errors name the key and the
-    type that is allowed."""
+    type that is allowed. A section (`current`, a dataclass) keeps every field the override does not name."""
     origin, args = typing.get_origin(annotation), typing.get_args(annotation)
     if dataclasses.is_dataclass(annotation):
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: expected a mapping of {sorted(f.name for f in dataclasses.fields(annotation))}"
                               f", got {value!r}")
-        return _apply(annotation(), value, where)
+        return _apply(current if current is not None else annotation(), value, where)
     if origin in (typing.Union, types.UnionType):  # `X | None`
         if value is None and type(None) in args:
             return None
@@ -284,7 +284,7 @@ def _apply(obj: Any, overrides: dict[str, Any], where: str) -> Any:
     for key, value in overrides.items():
         if key not in fields:
             raise ConfigError(f"unknown config key {where + '.' if where else ''}{key}; known: {sorted(fields)}")
-        changes[key] = _coerce(value, hints[key], f"{where + '.' if where else ''}{key}")
+        changes[key] = _coerce(value, hints[key], f"{where + '.' if where else ''}{key}", getattr(obj, key))
     return dataclasses.replace(obj, **changes)
 
 

@@ -1,6 +1,6 @@
 import pytest
 
-from ff3d_tf.config import ConfigError, load_config
+from ff3d_tf.config import ConfigError, load_config, replace_config
 
 
 def test_paper_config_and_overrides(tmp_path):
@@ -61,3 +61,11 @@ def test_values_within_range_are_kept():
                              "train.grad_clip_norm=null", "data.remove_ground_below_z_m='0.25'"])
     assert cfg.train.eval_every_steps == 0 and cfg.train.beta_1 == 0.0 and cfg.train.grad_clip_norm is None
     assert cfg.data.remove_ground_below_z_m == 0.25  # numbers given as text are read as numbers
+
+
+def test_replace_config_keeps_the_fields_it_does_not_name():
+    base = load_config(None, ["model.point_feature_dim=16", "model.decoder_dims=[[24, 24], [24, 16], [16, 16]]",
+                              "train.learning_rate=0.001"])
+    changed = replace_config(base, {"model.zero_init_output": True})
+    assert changed.model.zero_init_output and changed.model.point_feature_dim == 16
+    assert changed.model.decoder_dims == ((24, 24), (24, 16), (16, 16)) and changed.train.learning_rate == 1e-3

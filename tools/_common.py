@@ -25,3 +25,15 @@ def load(args):
         return load_config(args.config, args.set)
     except ConfigError as e:
         sys.exit(f"config error: {e}")
+
+
+def run(main) -> None:
+    """Calls a tool's `main`; a bad input the project names (a damaged checkpoint, a bad record, an unusable
+    config) ends the tool with that message and exit status 1 instead of a traceback."""
+    from ff3d_tf.config import ConfigError
+    from ff3d_tf.data.waymo import FrameDecodeError
+    from ff3d_tf.training.checkpoints import CheckpointError
+    try:
+        main()
+    except (CheckpointError, FrameDecodeError, ConfigError) as e:
+        sys.exit(f"error: {e}")

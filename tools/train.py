@@ -1,4 +1,10 @@
-"""Train FastFlow3D: python tools/train.py --config configs/synthetic_cpu.yaml --data_dir D --model_dir M"""
+"""Train FastFlow3D: python tools/train.py --config configs/synthetic_cpu.yaml --data_dir D --model_dir M
+
+Several GPUs of one machine: nothing to add (MirroredStrategy). Several machines: set TF_CONFIG on each worker (see
+README, "Training on several machines"). Input on other machines: --data_service_address (tools/data_service.py).
+"""
+import sys
+
 import _common
 
 from ff3d_tf.data.pairs import list_segment_files
@@ -10,6 +16,9 @@ def main():
     p.add_argument("--data_dir", required=True, help="directory (or glob) of training segment TFRecords")
     p.add_argument("--val_dir", default=None, help="validation records for the periodic metric subset")
     p.add_argument("--model_dir", required=True, help="checkpoints, TensorBoard logs, resolved config; resumes")
+    p.add_argument("--data_service_address", default=None,
+                   help="grpc://host:port of a tf.data service dispatcher (tools/data_service.py): decoding and "
+                        "pairing run on its workers")
     args = p.parse_args()
     cfg = _common.load(args)
     train_files = list_segment_files(args.data_dir)
@@ -17,8 +26,11 @@ def main():
         train_files = train_files[: cfg.data.max_training_segments]
     val_files = list_segment_files(args.val_dir) if args.val_dir else []
     print(f"training on {len(train_files)} segment files; model_dir {args.model_dir}", flush=True)
-    Trainer(cfg, args.model_dir, train_files, val_files, log_fn=lambda s: print(s, flush=True)).train()
+    result = Trainer(cfg, args.model_dir, train_files, val_files, log_fn=lambda s: print(s, flush=True),
+                     data_service_address=args.data_service_address).train()
+    if result.get("interrupted"):  # a non-zero status, so `train && eval` never evaluates an unfinished run
+        sys.exit(f"interrupted at step {result['step']} (checkpoint written); run the same command to resume")
 
 
 if __name__ == "__main__":
-    main()
+    _common.run(main)

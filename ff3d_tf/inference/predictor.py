@@ -13,6 +13,7 @@ import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.model import build_model
+from ff3d_tf.training.checkpoints import CheckpointError, list_checkpoints, verify_checkpoint
 from ff3d_tf.model.fastflow3d import INPUT_KEYS
 
 
@@ -21,26 +22,54 @@ def model_inputs(batch: dict) -> dict:
     return {k: batch[k] for k in INPUT_KEYS}
 
 
-def compiled_forward(model, jit_compile: bool = True):
-    """`inputs -> model(inputs, training=False)` as one tf.function (XLA when `jit_compile`), retraced per bucket."""
+def compiled_forward(model, jit_compile: bool | None = None):
+    """`inputs -> model(inputs, training=False)` as one tf.function, retraced per bucket. The model's compile mode
+    (`model.compile`) says what XLA compiles; `jit_compile=True` makes it one XLA program in any mode."""
     return tf.function(lambda inputs: model(inputs, training=False), jit_compile=jit_compile, reduce_retracing=True)
 
 
 def resolve_checkpoint(path: str) -> str:
-    """A checkpoint prefix from a checkpoint prefix or a model_dir (its latest checkpoint)."""
+    """A checkpoint prefix from a checkpoint prefix or a model_dir (its newest checkpoint, found from the files)."""
+    if tf.io.gfile.exists(path + ".index"):
+        return path  # a prefix (checked first: ram:// calls any prefix of a file a directory)
     if tf.io.gfile.isdir(path):
-        found = tf.train.latest_checkpoint(os.path.join(path, "checkpoints")) or tf.train.latest_checkpoint(path)
-        if found is None:
-            raise FileNotFoundError(f"no checkpoint under {path}")
-        return found
+        found = list_checkpoints(os.path.join(path, "checkpoints")) or list_checkpoints(path)
+        if not found:
+            raise FileNotFoundError(f"no checkpoint under {path} (expected {path}/checkpoints/ckpt-N.index)")
+        return found[0]
     return path
 
 
 def restore_model(cfg: ExperimentConfig, checkpoint_path: str):
-    """The model of `cfg` with the weights of a checkpoint prefix or a model_dir's latest checkpoint."""
+    """The model of `cfg` with the weights of a checkpoint prefix or a model_dir's newest checkpoint.
+
+    The checkpoint is verified first (`ff3d_tf.training.checkpoints.verify_checkpoint`): a damaged one, or one of
+    another config, raises `CheckpointError` naming it, the reason and, for a model_dir, the newest intact one.
+    Nothing is moved: choosing another checkpoint is the caller's decision.
+    """
     model = build_model(cfg)
-    tf.train.Checkpoint(model=model).restore(resolve_checkpoint(checkpoint_path)).expect_partial()
+    root = tf.train.Checkpoint(model=model)
+    prefix = resolve_checkpoint(checkpoint_path)
+    try:
+        verify_checkpoint(root, prefix)
+    except CheckpointError as e:
+        older = [p for p in list_checkpoints(os.path.dirname(prefix)) if p != prefix] \
+            if prefix != checkpoint_path else []  # a model_dir was given: say which checkpoint would work
+        intact = next((p for p in older if _verifies(root, p)), None)
+        if intact is not None:
+            raise CheckpointError(prefix, f"{e.reason}; the newest intact checkpoint is {intact} (pass it as the "
+                                          f"checkpoint, or rerun training to resume from it)") from e
+        raise
+    root.restore(prefix).expect_partial()
     return model
+
+
+def _verifies(root, prefix: str) -> bool:
+    try:
+        verify_checkpoint(root, prefix)
+        return True
+    except CheckpointError:
+        return False
 
 
 def is_saved_model(path: str) -> bool:
@@ -64,7 +93,7 @@ class Predictor:
 class ModelPredictor(Predictor):
     """A Keras model (restored from a checkpoint, or in memory) through its compiled forward."""
 
-    def __init__(self, model, jit_compile: bool = True):
+    def __init__(self, model, jit_compile: bool | None = None):
         self.model = model
         self.forward = compiled_forward(model, jit_compile)
 

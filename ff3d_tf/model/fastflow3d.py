@@ -11,27 +11,44 @@ two encoders' layers (t0 first), and the head (W-Z) regresses flow for the t0 po
 """
 from __future__ import annotations
 
+import logging
 import string
 
 import keras
 import tensorflow as tf
 
+from ff3d_tf import schema
 from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.model import layers as L
+
+_LOG = logging.getLogger(__name__)
 
 # Points per chunk of the point encoder / scatter loop: bounds the [chunk, 64] feature memory at any cloud size.
 POINT_CHUNK = 1 << 18
 
-INPUT_KEYS = ("points_xyz_t0", "point_features_t0", "point_mask_t0", "points_xyz_tm1_in_t0", "point_features_tm1",
-              "point_mask_tm1")
+INPUT_KEYS = schema.MODEL_INPUT_KEYS
 
 
 @keras.saving.register_keras_serializable(package="ff3d_tf")
 class FastFlow3D(keras.Model):
-    def __init__(self, num_pillars_x=512, num_pillars_y=512, x_range_m=(-85.0, 85.0), y_range_m=(-85.0, 85.0),
-                 z_range_m=(-3.0, 3.0), point_feature_dim=64, encoder_widths=(64, 128, 256), encoder_depths=(4, 6, 6),
-                 decoder_dims=((128, 128), (128, 64), (64, 64)), head_hidden_dim=32, zero_init_output=False,
-                 **kwargs):
+    """The network of the paper's table, in three stages with their own entry points:
+
+    `encode_points` (rows A, B: pillarization, point encoder, Snap-To-Grid scatter), `dense_stages` (rows C-V: the
+    convolutional encoder and decoder on the BEV grids) and `decode_points` (rows W-Z: ungrid, head). `call` runs
+    them in order; `compile_mode` says how a traced call (inside any `tf.function`) compiles them:
+      "xla"    the whole forward as one XLA program;
+      "hybrid" the two point stages as their own XLA programs, the dense stages as TensorFlow graph kernels (oneDNN
+               on CPU), which are faster than XLA's convolutions there;
+      "none"   no XLA.
+    Eager calls run op by op in every mode, and a call traced inside a caller's XLA program is traced inline (one
+    program, whatever the mode). `ff3d_tf.model.compile` resolves the config's "auto".
+    """
+
+    # Keyword-only and without defaults: the paper's values live in `ff3d_tf.config` alone (`model_kwargs`).
+    def __init__(self, *, num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, point_feature_dim,
+                 encoder_widths, encoder_depths, decoder_dims, head_hidden_dim, zero_init_output=False,
+                 compile_mode="none", **kwargs):
         super().__init__(**kwargs)
         self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
         self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
@@ -41,11 +58,13 @@ class FastFlow3D(keras.Model):
         self.decoder_dims = tuple(tuple(int(v) for v in d) for d in decoder_dims)
         self.head_hidden_dim = int(head_hidden_dim)
         self.zero_init_output = bool(zero_init_output)
+        self.compile_mode = compile_lib.check_resolved(compile_mode)
 
         # Pillar indices and offsets always in float32 (a bfloat16 x would move points across pillars).
         self.pillarize = L.Pillarize(num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, name="pillarize",
                                      dtype="float32")
-        self.point_encoder = L.PointEncoder(self.point_feature_dim, name="A")
+        self.point_encoder = L.PointEncoder(self.point_feature_dim, self.num_pillars_x, self.num_pillars_y,
+                                            chunk_size=POINT_CHUNK, name="A")
         letters = iter(string.ascii_uppercase[2:] + "".join(f"E{i}" for i in range(100)))
         # Every layer is also a plain attribute (conv_C, ..., upsample_S, ...): TF checkpoints track attributes, not
         # the Keras-tracked lists below, so optimizer state and weights round-trip through tf.train.Checkpoint.
@@ -77,7 +96,7 @@ class FastFlow3D(keras.Model):
         for stage in self.encoder_stages:
             for block in stage:
                 block.build(shape)
-                shape = tuple(block.conv.compute_output_shape(shape))
+                shape = tuple(block.compute_output_shape(shape))
             skip_shapes.append(shape)
 
         def both(sh):
@@ -87,97 +106,71 @@ class FastFlow3D(keras.Model):
             block.build((x_shape, both(skip)))
             x_shape = both(skip)[:-1] + (block.depth,)
         self.conv_v.build(x_shape)
-        self.head_y.build(((None, h, w, self.conv_v.filters), (None, None, c), (None, None, 8)))
+        self.head_y.build(((None, h, w, self.conv_v.filters), (None, None, c), (None, None, 8), (None, None)))
         self.head_z.build((None, None, self.head_hidden_dim))
         self.built = True
 
     def call(self, inputs, training=False):
-        batch = tf.shape(inputs["points_xyz_t0"])[0]
+        inputs = {k: inputs[k] for k in INPUT_KEYS}
+        if self.compile_mode == "none" or tf.executing_eagerly() or compile_lib.in_xla_context():
+            return self._forward(inputs, training)
+        # A fresh function per trace of the caller: the stage reads the variables (or, under `stateless_call`, the
+        # values that stand in for them) of the graph being traced.
+        if self.compile_mode == "xla":
+            return compile_lib.xla_function(lambda x: self._forward(x, training))(inputs)
+        encoded = compile_lib.xla_function(lambda x: self.encode_points(x, training))(inputs)
+        grid_flow_embedding = self.dense_stages(encoded["bev_features"], training)
+        return compile_lib.xla_function(self.decode_points)(grid_flow_embedding, encoded)
+
+    def _forward(self, inputs, training):
+        encoded = self.encode_points(inputs, training)
+        return self.decode_points(self.dense_stages(encoded["bev_features"], training), encoded)
+
+    def encode_points(self, inputs, training=False):
+        """Rows A and B on both clouds (shared weights, one set of BN statistics over both).
+
+        Returns a dict: bev_features [2B,H,W,C] (t0 samples first, then t-1), and for the head: point_features_t0
+        [B,N0,C], encoding_t0 [B,N0,8], pillar_ids_t0 [B,N0], point_valid_t0 [B,N0].
+        """
         enc_t0, ids_t0, valid_t0 = self.pillarize(inputs["points_xyz_t0"], inputs["point_features_t0"],
                                                   tf.cast(inputs["point_mask_t0"], tf.bool))
         enc_tm1, ids_tm1, valid_tm1 = self.pillarize(inputs["points_xyz_tm1_in_t0"], inputs["point_features_tm1"],
                                                      tf.cast(inputs["point_mask_tm1"], tf.bool))
-        # Row A on both clouds: shared weights and one set of BN statistics over both clouds (8-d, cheap), then
-        # each cloud is encoded and scattered (row B) in chunks of points, so that memory does not grow with a full
-        # [N, 64] feature array per cloud; the t0 chunks also yield the per-point part of row Y.
-        normed_t0, normed_tm1 = self.point_encoder.norm([enc_t0, enc_tm1], [valid_t0, valid_tm1],
-                                                        training=training)
-        grid_t0, point_term_t0 = self._encode_cloud(normed_t0, valid_t0, ids_t0, batch, enc_t0)
-        grid_tm1, _ = self._encode_cloud(normed_tm1, valid_tm1, ids_tm1, batch, None)
-        bev = tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_v.compute_dtype)  # [2B,H,W,C], t0 samples first
+        # The t-1 cloud is encoded and scattered chunk by chunk (no [N1, C] array); the t0 features are kept for
+        # row X.
+        (grid_t0, grid_tm1), (features_t0, _) = self.point_encoder(
+            [enc_t0, enc_tm1], [valid_t0, valid_tm1], [ids_t0, ids_tm1], keep_point_features=(True, False),
+            training=training)
+        return {"bev_features": tf.concat([grid_t0, grid_tm1], 0), "point_features_t0": features_t0,
+                "encoding_t0": enc_t0, "pillar_ids_t0": ids_t0, "point_valid_t0": valid_t0}
 
-        skips = [bev]
-        x = bev
+    def dense_stages(self, bev_features, training=False):
+        """Rows C-V: bev_features [2B,H,W,C] (t0 samples first) -> grid flow embedding [B,H,W,C_V]."""
+        skips = [bev_features]
+        x = bev_features
         for stage in self.encoder_stages:
             for block in stage:
                 x = block(x, training=training)
             skips.append(x)
 
-        def both(t):  # [2B,h,w,c] -> [B,h,w,2c], t0 first
-            return tf.concat([t[:batch], t[batch:]], -1)
+        def both(t):  # [2B,h,w,c] -> [B,h,w,2c], t0 first (split: its gradient is a concat, no zero-filled grids)
+            return tf.concat(tf.split(t, 2, axis=0), -1)
 
         # skips: B, F, L, R (paper rows); decoder S(R*, L*), T(S, F*), U(T, B*), V(U).
         x = self.upsample_skips[0]([both(skips[3]), both(skips[2])])
         x = self.upsample_skips[1]([x, both(skips[1])])
         x = self.upsample_skips[2]([x, both(skips[0])])
-        grid_flow_embedding = self.conv_v(x)  # [B,H,W,64]
-        y = self.head_y([grid_flow_embedding, point_term_t0, ids_t0])
+        return self.conv_v(x)
+
+    def decode_points(self, grid_flow_embedding, encoded):
+        """Rows W-Z: flow of the t0 points. `encoded` is `encode_points`'s dict; returns flow_mps [B,N0,3] (0 where
+        invalid) and point_valid [B,N0]."""
+        valid = encoded["point_valid_t0"]
+        y = self.head_y([grid_flow_embedding, encoded["point_features_t0"], encoded["encoding_t0"],
+                         encoded["pillar_ids_t0"]])
         flow = tf.cast(self.head_z(y), tf.float32)
-        flow = tf.where(valid_t0[..., None], flow, tf.zeros_like(flow))
-        return {"flow_mps": flow, "point_valid": valid_t0}
-
-    def _encode_cloud(self, normed, valid, pillar_ids, batch, encoding_for_head):
-        """Rows A (after its BN) and B for one cloud, POINT_CHUNK points at a time.
-
-        normed [B,N,8] (BN applied), valid [B,N], pillar_ids [B,N] (dummy B*H*W) -> grid [B,H,W,C] and, when
-        `encoding_for_head` [B,N,8] is given, the head's per-point term [B,N,U]. The B*N points are flattened (ids
-        are global over the batch), padded to whole chunks and taken chunk by chunk: no transposes, and memory for
-        only one chunk's [chunk, C] features.
-        """
-        n = tf.shape(normed)[1]
-        total_static = normed.shape[0] * normed.shape[1] if None not in normed.shape[:2] else None
-        total = batch * n
-        if total_static is not None:
-            chunk = max(min(POINT_CHUNK, total_static), 1)
-            num_chunks = max(-(-total_static // chunk), 1)
-        else:
-            chunk = tf.maximum(tf.minimum(POINT_CHUNK, total), 1)
-            num_chunks = tf.maximum((total + chunk - 1) // chunk, 1)
-        pad = num_chunks * chunk - total
-        cells = self.num_pillars_x * self.num_pillars_y
-
-        def chunks(t, fill):  # [B,N,...] -> [K,chunk,...]
-            flat = tf.reshape(t, tf.concat([[total], tf.shape(t)[2:]], 0))
-            flat = tf.pad(flat, [[0, pad]] + [[0, 0]] * (len(t.shape) - 2), constant_values=fill)
-            return tf.reshape(flat, tf.concat([[num_chunks, chunk], tf.shape(t)[2:]], 0))
-
-        normed_c = chunks(normed, 0.0)
-        valid_c = chunks(valid, False)
-        ids_c = chunks(pillar_ids, batch * cells)
-        enc_c = chunks(encoding_for_head, 0.0) if encoding_for_head is not None else None
-        c, u = self.point_feature_dim, self.head_hidden_dim
-        dtype = self.point_encoder.dense.compute_dtype
-        grid = tf.zeros([batch * cells + 1, c], dtype)
-        # Plain tensor loop state (no TensorArray: its lists do not differentiate under XLA).
-        terms = tf.zeros([num_chunks if enc_c is not None else 1, chunk, u], dtype)
-
-        def body(i, grid, terms):
-            feat = self.point_encoder.features(normed_c[i], valid_c[i])  # [chunk,C]
-            # Row B, Snap-To-Grid: segment sum over flat pillar ids (dummy segment last for invalid points).
-            grid = grid + tf.math.unsorted_segment_sum(feat, ids_c[i], batch * cells + 1)
-            if enc_c is not None:
-                terms = tf.tensor_scatter_nd_update(terms, [[i]], self.head_y.point_term(feat, enc_c[i])[None])
-            return [i + 1, grid, terms]
-
-        def cond(i, grid, terms):
-            del grid, terms
-            return i < num_chunks
-
-        _, grid, terms = tf.while_loop(cond, body, [tf.constant(0), grid, terms], maximum_iterations=num_chunks)
-        grid = tf.reshape(grid[:-1], [batch, self.num_pillars_y, self.num_pillars_x, c])
-        if enc_c is None:
-            return grid, None
-        return grid, tf.reshape(tf.reshape(terms, [-1, u])[:total], [batch, n, u])
+        flow = tf.where(valid[..., None], flow, tf.zeros_like(flow))
+        return {"flow_mps": flow, "point_valid": valid}
 
     def table_rows(self) -> list[tuple[str, int]]:
         """(row, parameter count) in the order of the paper's table."""
@@ -193,12 +186,28 @@ class FastFlow3D(keras.Model):
                 "x_range_m": self.x_range_m, "y_range_m": self.y_range_m, "z_range_m": self.z_range_m,
                 "point_feature_dim": self.point_feature_dim, "encoder_widths": self.encoder_widths,
                 "encoder_depths": self.encoder_depths, "decoder_dims": self.decoder_dims,
-                "head_hidden_dim": self.head_hidden_dim, "zero_init_output": self.zero_init_output}
+                "head_hidden_dim": self.head_hidden_dim, "zero_init_output": self.zero_init_output,
+                "compile_mode": self.compile_mode}
 
 
-def build_model(cfg: ExperimentConfig) -> FastFlow3D:
-    """The model of a config, with its variables created (so count_params works before the first call)."""
+def model_kwargs(cfg: ExperimentConfig) -> dict:
+    """FastFlow3D's constructor keywords from the config's grid and model fields (by name, never by position)."""
     g, m = cfg.grid, cfg.model
+    return dict(num_pillars_x=g.num_pillars_x, num_pillars_y=g.num_pillars_y, x_range_m=g.x_range_m,
+                y_range_m=g.y_range_m, z_range_m=g.z_range_m, point_feature_dim=m.point_feature_dim,
+                encoder_widths=m.encoder_widths, encoder_depths=m.encoder_depths, decoder_dims=m.decoder_dims,
+                head_hidden_dim=m.head_hidden_dim, zero_init_output=m.zero_init_output)
+
+
+def build_model(cfg: ExperimentConfig, compile_mode: str | None = None) -> FastFlow3D:
+    """The model of a config, with its variables created (so count_params works before the first call).
+
+    `compile_mode` overrides `cfg.model.compile`; "auto" is resolved for the visible devices (and logged).
+    """
+    m = cfg.model
+    requested = m.compile if compile_mode is None else compile_mode
+    resolved = compile_lib.resolve_compile_mode(requested)
+    _LOG.info("model.compile=%s -> %s (%s)", requested, resolved, compile_lib.describe(resolved))
     previous = keras.config.dtype_policy()
     # Mixed precision: bfloat16 compute, float32 variables (no loss scaling needed); the layers take the policy that
     # is global while they are constructed.
@@ -206,9 +215,7 @@ def build_model(cfg: ExperimentConfig) -> FastFlow3D:
     try:
         # The model itself stays float32 so that it does not cast the input points (only its layers compute in
         # the mixed policy).
-        model = FastFlow3D(g.num_pillars_x, g.num_pillars_y, g.x_range_m, g.y_range_m, g.z_range_m,
-                           m.point_feature_dim, m.encoder_widths, m.encoder_depths, m.decoder_dims,
-                           m.head_hidden_dim, m.zero_init_output, dtype="float32")
+        model = FastFlow3D(**model_kwargs(cfg), compile_mode=resolved, dtype="float32")
     finally:
         keras.config.set_dtype_policy(previous)
     # Variables from the configuration, without a forward pass: an eager dummy forward would allocate full-size

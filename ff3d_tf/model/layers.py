@@ -121,16 +121,33 @@ class MaskedBatchNorm(keras.layers.Layer):
 
 @keras.saving.register_keras_serializable(package=_PKG)
 class PointEncoder(keras.layers.Layer):
-    """Table row A, MLP to `units` with BN and ReLU: BN(8-D encoding) -> Linear(8 -> units, no bias) -> ReLU.
+    """Table rows A and B: the per-point MLP, BN(8-D encoding) -> Linear(8 -> C, no bias) -> ReLU, and Snap-To-Grid
+    (each pillar sums the features of its points).
 
-    Reading of the row's 544 parameters: 8 x 64 kernel (no bias, BN follows the input) + 4 x 8 BN values = 544. The
+    Reading of row A's 544 parameters: 8 x 64 kernel (no bias, BN follows the input) + 4 x 8 BN values = 544. The
     BN normalises the 8-D encoding, whose channels differ in scale by two orders of magnitude (pillar centres up to
     85 m, offsets < 0.2 m, intensity ~1); a bias would be redundant with BN's beta pushed through the kernel.
+
+    Args:
+      units: C, the point feature width.
+      num_pillars_x, num_pillars_y: grid W, H of row B's output.
+      chunk_size: points (over the flattened batch) encoded and scattered at a time for clouds whose per-point
+        features are not kept: memory for one [chunk, C] feature block at any cloud size.
+    Call:
+      encodings [B,N,8] (`Pillarize`), point_valid [B,N] bool, pillar_ids [B,N] int32 (dummy id B*H*W for invalid
+        points); or lists of them, one per cloud: the BN statistics are then joint over all clouds (both frames
+        share row A).
+      keep_point_features: bool, or one per cloud: also return that cloud's per-point features (row X's input);
+        the other clouds are encoded and scattered chunk by chunk without keeping them.
+    Returns:
+      (bev_features [B,H,W,C], point_features [B,N,C] or None), or (list, list) when called with lists.
     """
 
-    def __init__(self, units=64, **kwargs):
+    def __init__(self, units=64, num_pillars_x=512, num_pillars_y=512, chunk_size=1 << 18, **kwargs):
         super().__init__(**kwargs)
         self.units = int(units)
+        self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
+        self.chunk_size = int(chunk_size)
         self.norm = MaskedBatchNorm(name="bn")
         self.dense = keras.layers.Dense(self.units, use_bias=False, kernel_initializer="glorot_uniform",
                                         name="linear")
@@ -141,21 +158,94 @@ class PointEncoder(keras.layers.Layer):
         self.norm.build(input_shape)
         self.dense.build(input_shape)
 
-    def call(self, encodings, point_valid, training=False):
-        """encodings [B,N,8] (or a list of clouds, normalised with joint statistics) -> [B,N,units] (or a list)."""
+    def call(self, encodings, point_valid, pillar_ids, keep_point_features=False, training=False):
         single = not isinstance(encodings, (list, tuple))
-        normed = self.norm(encodings, point_valid, training=training)
-        normed, valid = ([normed], [point_valid]) if single else (normed, point_valid)
-        out = [self.features(x, v) for x, v in zip(normed, valid)]
-        return out[0] if single else out
+        if single:
+            encodings, point_valid, pillar_ids = [encodings], [point_valid], [pillar_ids]
+        keep = ([bool(keep_point_features)] * len(encodings) if isinstance(keep_point_features, bool)
+                else [bool(k) for k in keep_point_features])
+        normed = self.norm(list(encodings), list(point_valid), training=training)  # joint statistics
+        grids, features = [], []
+        for x, valid, ids, k in zip(normed, point_valid, pillar_ids, keep):
+            grid, feat = self._encode_and_scatter(x, valid, ids, k)
+            grids.append(grid)
+            features.append(feat)
+        return (grids[0], features[0]) if single else (grids, features)
 
-    def features(self, normed, point_valid):
-        """Linear + ReLU of already normalised encodings; zero for invalid points."""
+    def _features(self, normed, point_valid):
+        """Linear + ReLU of normalised encodings [..,8] -> [..,C]; zero for invalid points."""
         h = tf.nn.relu(_dense_last_axis(normed, self.dense.kernel))
         return tf.where(point_valid[..., None], h, tf.zeros_like(h))
 
+    def _encode_and_scatter(self, normed, point_valid, pillar_ids, keep):
+        """One cloud: grid [B,H,W,C] (row B, segment sum over flat pillar ids, dummy segment last) and the features
+        [B,N,C] when `keep`."""
+        batch = tf.shape(normed)[0]
+        num_segments = batch * self.num_pillars_x * self.num_pillars_y + 1
+        if keep:
+            features = self._features(normed, point_valid)  # [B,N,C]
+            grid = tf.math.unsorted_segment_sum(features, pillar_ids, num_segments)
+        else:
+            features, grid = None, self._chunked_scatter(normed, point_valid, pillar_ids, num_segments)
+        return tf.reshape(grid[:-1], [batch, self.num_pillars_y, self.num_pillars_x, self.units]), features
+
+    def _chunked_scatter(self, normed, point_valid, pillar_ids, num_segments):
+        """Segment sums [num_segments, C] of the features, `chunk_size` points at a time. The B*N points are
+        flattened (ids are global over the batch), padded to whole chunks and taken chunk by chunk: no transposes,
+        and no [B*N, C] feature array."""
+        batch, n = tf.shape(normed)[0], tf.shape(normed)[1]
+        total = batch * n
+        if None not in normed.shape[:2]:
+            total_static = normed.shape[0] * normed.shape[1]
+            chunk = max(min(self.chunk_size, total_static), 1)
+            num_chunks = max(-(-total_static // chunk), 1)
+        else:
+            chunk = tf.maximum(tf.minimum(self.chunk_size, total), 1)
+            num_chunks = tf.maximum((total + chunk - 1) // chunk, 1)
+        pad = num_chunks * chunk - total
+
+        def chunks(t, fill):  # [B,N,...] -> [K,chunk,...]
+            flat = tf.reshape(t, tf.concat([[total], tf.shape(t)[2:]], 0))
+            flat = tf.pad(flat, [[0, pad]] + [[0, 0]] * (len(t.shape) - 2), constant_values=fill)
+            return tf.reshape(flat, tf.concat([[num_chunks, chunk], tf.shape(t)[2:]], 0))
+
+        normed_c = chunks(normed, 0.0)  # [K,chunk,8]
+        valid_c = chunks(point_valid, False)
+        ids_c = chunks(pillar_ids, num_segments - 1)
+
+        # A gradient of its own (recomputing each chunk's features) instead of the loop's automatic one: the
+        # automatic gradient keeps every chunk's intermediates in TensorLists, which may not leave an XLA program
+        # (the point stage's forward and backward are separate programs in compile mode "hybrid").
+        @tf.custom_gradient
+        def scatter(normed_c, kernel):
+            def forward(i, grid):
+                feat = tf.where(valid_c[i][:, None], tf.nn.relu(tf.matmul(normed_c[i], kernel)), 0.0)  # [chunk,C]
+                return [i + 1, grid + tf.math.unsorted_segment_sum(feat, ids_c[i], num_segments)]
+
+            grid = tf.zeros([num_segments, self.units], normed_c.dtype)
+            _, grid = tf.while_loop(lambda i, _: i < num_chunks, forward, [tf.constant(0), grid],
+                                    maximum_iterations=num_chunks)
+
+            def grad(d_grid):  # [num_segments, C] -> d normed_c [K,chunk,8], d kernel [8,C]
+                def backward(i, d_normed, d_kernel):
+                    pre = tf.matmul(normed_c[i], kernel)
+                    d_pre = tf.where(valid_c[i][:, None] & (pre > 0), tf.gather(d_grid, ids_c[i]), 0.0)
+                    d_kernel = d_kernel + tf.matmul(normed_c[i], d_pre, transpose_a=True)
+                    d_chunk = tf.matmul(d_pre, kernel, transpose_b=True)
+                    return [i + 1, tf.tensor_scatter_nd_update(d_normed, [[i]], d_chunk[None]), d_kernel]
+
+                _, d_normed, d_kernel = tf.while_loop(
+                    lambda i, *_: i < num_chunks, backward,
+                    [tf.constant(0), tf.zeros_like(normed_c), tf.zeros_like(kernel)], maximum_iterations=num_chunks)
+                return d_normed, d_kernel
+
+            return grid, grad
+
+        return scatter(normed_c, tf.cast(self.dense.kernel, normed.dtype))
+
     def get_config(self):
-        return {**super().get_config(), "units": self.units}
+        return {**super().get_config(), "units": self.units, "num_pillars_x": self.num_pillars_x,
+                "num_pillars_y": self.num_pillars_y, "chunk_size": self.chunk_size}
 
 
 @keras.saving.register_keras_serializable(package=_PKG)
@@ -175,6 +265,9 @@ class ConvBlock(keras.layers.Layer):
 
     def call(self, x, training=False):
         return tf.nn.relu(self.bn(self.conv(x), training=training))
+
+    def compute_output_shape(self, input_shape):
+        return self.conv.compute_output_shape(input_shape)
 
     def get_config(self):
         return {**super().get_config(), "filters": self.filters, "strides": self.strides}
@@ -226,6 +319,9 @@ class UngridHead(keras.layers.Layer):
 
     concat([w, a, e]) @ K = w @ K_w + a @ K_a + e @ K_e, so the grid part is projected to 32 channels on the grid first
     and 32 (not 64) values are gathered per point: the same function with far less per-point memory traffic.
+
+    Call: [bev [B,H,W,Cg], point_features [B,N,Cp] (row A), encoding [B,N,8] (`Pillarize`), pillar_ids [B,N]].
+    Returns: [B,N,U]; rows of invalid points are arbitrary (the caller masks them).
     """
 
     def __init__(self, units=32, **kwargs):
@@ -233,7 +329,7 @@ class UngridHead(keras.layers.Layer):
         self.units = int(units)
 
     def build(self, input_shape):
-        """input_shape: (grid [.., Cg], point features [.., Cp], encoding [.., 8])."""
+        """input_shape: (grid [.., Cg], point features [.., Cp], encoding [.., 8][, pillar ids])."""
         grid_shape, point_shape, encoding_shape = input_shape[0], input_shape[1], input_shape[2]
         self.grid_channels = int(grid_shape[-1])
         self.point_channels = int(point_shape[-1])
@@ -241,24 +337,20 @@ class UngridHead(keras.layers.Layer):
         self.kernel = self.add_weight(name="kernel", shape=(fan_in, self.units), initializer="glorot_uniform")
         self.bias = self.add_weight(name="bias", shape=(self.units,), initializer="zeros")
 
-    def point_term(self, point_features, encoding):
-        """The per-point part (a @ K_a + e @ K_e + bias) [B,N,U]; computed early so that the 64-d point features
-        need not stay alive through the convolutions."""
-        kernel = tf.cast(self.kernel, point_features.dtype)
-        encoding = tf.cast(encoding, point_features.dtype)
+    def call(self, inputs):
+        """inputs: bev [B,H,W,Cg], point_features [B,N,Cp], encoding [B,N,8], pillar_ids [B,N] -> [B,N,U]."""
+        bev, point_features, encoding, pillar_ids = inputs
+        kernel = tf.cast(self.kernel, bev.dtype)
+        k_grid = kernel[: self.grid_channels]
         k_point = kernel[self.grid_channels: self.grid_channels + self.point_channels]
         k_enc = kernel[self.grid_channels + self.point_channels:]
-        return (_dense_last_axis(point_features, k_point) + _dense_last_axis(encoding, k_enc) +
-                tf.cast(self.bias, point_features.dtype))
-
-    def call(self, inputs):
-        """inputs: bev [B,H,W,Cg], point_term [B,N,U] (from `point_term`), pillar_ids [B,N] -> [B,N,U]."""
-        bev, point_term, pillar_ids = inputs
-        k_grid = tf.cast(self.kernel, bev.dtype)[: self.grid_channels]
+        point_features = tf.cast(point_features, bev.dtype)
+        point_term = (_dense_last_axis(point_features, k_point) + _dense_last_axis(tf.cast(encoding, bev.dtype), k_enc)
+                      + tf.cast(self.bias, bev.dtype))  # a @ K_a + e @ K_e + bias, [B,N,U]
         projected = tf.reshape(tf.einsum("bhwc,cu->bhwu", bev, k_grid), [-1, self.units])  # [B*H*W, U]
         cells = tf.shape(projected)[0]
         safe_ids = tf.minimum(pillar_ids, cells - 1)  # dummy ids gather any cell; masked by the caller
-        return tf.gather(projected, safe_ids) + tf.cast(point_term, bev.dtype)  # [B,N,U]
+        return tf.gather(projected, safe_ids) + point_term  # [B,N,U]
 
     def get_config(self):
         return {**super().get_config(), "units": self.units}

@@ -8,6 +8,7 @@ skipped and counted and never reach the weights.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -20,12 +21,21 @@ import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
+from ff3d_tf.training.checkpoints import restore_newest_intact
 from ff3d_tf.training.losses import per_sample_flow_loss
 from ff3d_tf.training.metrics import SceneFlowMetrics
 from ff3d_tf.inference.predictor import compiled_forward, model_inputs
 from ff3d_tf.model import build_model
 
 _LOG = logging.getLogger(__name__)
+
+
+def weights_fingerprint(model) -> str:
+    """sha256 of every weight's bytes, in order: equal fingerprints mean bit-identical models (e.g. across workers)."""
+    digest = hashlib.sha256()
+    for v in model.weights:
+        digest.update(np.ascontiguousarray(np.asarray(v)).tobytes())
+    return digest.hexdigest()[:16]
 
 
 class NonFiniteLossError(RuntimeError):
@@ -43,6 +53,17 @@ def make_strategy() -> tf.distribute.Strategy:
         tf.distribute.OneDeviceStrategy("/cpu:0")
 
 
+def _chief_and_write_dir(strategy: tf.distribute.Strategy, model_dir: str) -> tuple[bool, str]:
+    """(is this the chief, where this process writes checkpoints). Single-process training is its own chief."""
+    resolver = getattr(strategy, "cluster_resolver", None)
+    task_type = getattr(resolver, "task_type", None)
+    task_id = getattr(resolver, "task_id", None)
+    if task_type is None or task_type == "chief" or (task_type == "worker" and task_id == 0 and
+                                                     "chief" not in resolver.cluster_spec().as_dict()):
+        return True, model_dir
+    return False, os.path.join(model_dir, f"tmp_{task_type}_{task_id}")
+
+
 def learning_rate_schedule(cfg: ExperimentConfig):
     """Constant (the paper) or linear warm-up then cosine decay over `train.num_steps`."""
     t = cfg.train
@@ -57,33 +78,59 @@ def learning_rate_schedule(cfg: ExperimentConfig):
         warmup_steps=t.warmup_steps)
 
 
-def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, shard=None, skip_batches: int = 0):
-    """Repeated, shuffled (seeded: the same order on every run), batched and bucketed training examples."""
+def make_optimizer(cfg: ExperimentConfig) -> keras.optimizers.Optimizer:
+    """Adam with the paper's betas and the configured learning-rate schedule."""
+    return keras.optimizers.Adam(learning_rate_schedule(cfg), beta_1=cfg.train.beta_1, beta_2=cfg.train.beta_2)
+
+
+DATA_SERVICE_JOB = "ff3d_train"  # trainers sharing a tf.data service job read disjoint batches of one stream
+
+
+def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, shard=None, skip_batches: int = 0,
+                     data_service_address: str | None = None):
+    """Repeated, shuffled, batched and bucketed training examples.
+
+    Without a data service the order is seeded (the same on every run), so a resume fast-forwards `skip_batches`
+    to the exact position. With `data_service_address` (grpc://host:port of a tf.data service dispatcher), decoding,
+    pairing and batching run on the service's workers, the segment files are split among them (dynamic sharding:
+    every pair once per epoch) and batches arrive in the order workers finish them: training resumes from its
+    checkpoint at the same step with the same weights, but the data order is not replayed.
+    """
     ds = pairs.pair_dataset(files, cfg)
-    if shard is not None:
+    if shard is not None and not data_service_address:
         ds = ds.shard(*shard)
     if cfg.data.cache_decoded:
         ds = ds.cache()
     ds = ds.shuffle(cfg.data.shuffle_buffer, seed=cfg.train.seed, reshuffle_each_iteration=True).repeat()
     ds = pairs.batch_examples(ds, batch_size, cfg.data.point_bucket_base, drop_remainder=True)
-    if skip_batches:
+    if data_service_address:
+        ds = ds.apply(tf.data.experimental.service.distribute(
+            processing_mode=tf.data.experimental.service.ShardingPolicy.DYNAMIC, service=data_service_address,
+            job_name=DATA_SERVICE_JOB))
+    elif skip_batches:
         ds = ds.skip(skip_batches)
     return ds.prefetch(2)
 
 
 class Trainer:
+    """The training loop. Multi-worker: every worker runs the same steps; only the chief writes into `model_dir`
+    (checkpoints, summaries, config, history). The others save into a temporary directory of their own, removed at
+    the end (TF's multi-worker checkpointing pattern), and all of them restore from the chief's checkpoints."""
+
     def __init__(self, cfg: ExperimentConfig, model_dir: str, train_files: list[str], val_files: list[str] = (),
-                 strategy: tf.distribute.Strategy | None = None, log_fn=print):
+                 strategy: tf.distribute.Strategy | None = None, log_fn=print, data_service_address: str | None = None):
         self.cfg, self.model_dir = cfg, model_dir
         self.train_files, self.val_files = list(train_files), list(val_files)
         self.strategy = strategy or make_strategy()
-        self.log = log_fn
+        self.data_service_address = data_service_address
+        self._decode_options = pairs.decode_options(cfg)  # how a bad input record is re-read to name it
+        self.is_chief, self._write_dir = _chief_and_write_dir(self.strategy, model_dir)
+        self.log = log_fn if self.is_chief else (lambda s: log_fn(f"[worker] {s}"))
         self._stop_signal = None
         keras.utils.set_random_seed(cfg.train.seed)  # same initial weights for the same seed (reproducible runs)
         with self.strategy.scope():
             self.model = build_model(cfg)
-            self.optimizer = keras.optimizers.Adam(learning_rate_schedule(cfg), beta_1=cfg.train.beta_1,
-                                                   beta_2=cfg.train.beta_2)
+            self.optimizer = make_optimizer(cfg)
             self.optimizer.build(self.model.trainable_variables)
             self.step = tf.Variable(0, dtype=tf.int64, trainable=False, name="step")
             self.nonfinite_total = tf.Variable(0, dtype=tf.int64, trainable=False, name="nonfinite_total")
@@ -91,9 +138,12 @@ class Trainer:
         self.checkpoint = tf.train.Checkpoint(model=self.model, optimizer=self.optimizer, step=self.step,
                                               nonfinite_total=self.nonfinite_total,
                                               nonfinite_in_row=self.nonfinite_in_row)
-        self.manager = tf.train.CheckpointManager(self.checkpoint, os.path.join(model_dir, "checkpoints"),
+        self.checkpoint_dir = os.path.join(model_dir, "checkpoints")  # the chief's: every worker restores from it
+        self.manager = tf.train.CheckpointManager(self.checkpoint, os.path.join(self._write_dir, "checkpoints"),
                                                   max_to_keep=cfg.train.keep_checkpoints)
-        self._grad_fn = tf.function(self._loss_and_grads, jit_compile=cfg.model.jit_compile, reduce_retracing=True)
+        # Forward + backward as one XLA program in compile mode "xla"; otherwise the model compiles its stages itself.
+        self._grad_fn = tf.function(self._loss_and_grads, jit_compile=self.model.compile_mode == "xla",
+                                    reduce_retracing=True)
 
     # -- steps -------------------------------------------------------------------------------------------------
     def _loss_and_grads(self, batch):
@@ -110,6 +160,14 @@ class Trainer:
     def _replica_step(self, batch):
         loss, grads = self._grad_fn(batch)
         ctx = tf.distribute.get_replica_context()
+        if ctx.num_replicas_in_sync > 1:
+            # BatchNorm moving statistics: each replica updated its own copy from its own batch (Keras creates them
+            # with aggregation "none", and a synchronising assign cannot run inside the XLA-compiled step); set
+            # every copy to the replicas' mean, else the copies drift apart and a checkpoint keeps replica 0's.
+            moving = self.model.non_trainable_variables
+            means = ctx.all_reduce(tf.distribute.ReduceOp.MEAN, [tf.identity(v.value) for v in moving])
+            for var, mean in zip(moving, means):
+                var.assign(mean)
         # Sum over replicas here, so every replica holds the global loss and gradients.
         return ctx.all_reduce(tf.distribute.ReduceOp.SUM, loss), ctx.all_reduce(tf.distribute.ReduceOp.SUM, grads)
 
@@ -146,67 +204,104 @@ class Trainer:
         previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
         return previous
 
-    def train(self, num_steps: int | None = None) -> dict:
-        cfg = self.cfg
-        num_steps = cfg.train.num_steps if num_steps is None else num_steps
-        tf.io.gfile.makedirs(self.model_dir)  # local or gs:// alike
-        cfg.save(os.path.join(self.model_dir, "config.yaml"))
-        if self.manager.latest_checkpoint:
-            self.checkpoint.restore(self.manager.latest_checkpoint)
-            self.log(f"resumed from {self.manager.latest_checkpoint} at step {int(self.step.numpy())}")
-        start_step = int(self.step.numpy())
-        if start_step >= num_steps:
-            self.log(f"already at step {start_step} >= {num_steps}; nothing to do")
-            return {"step": start_step}
-        global_batch = cfg.train.global_batch_size
+    def restore_latest(self) -> str | None:
+        """Restores the newest intact checkpoint of the chief's `model_dir` (damaged ones are moved aside); returns
+        its prefix, or None for a fresh start."""
+        resumed = restore_newest_intact(self.checkpoint, self.checkpoint_dir, self.log, move_damaged=self.is_chief)
+        if resumed:
+            self.log(f"resumed from {resumed} at step {int(self.step.numpy())}")
+        return resumed
+
+    def _input_iterator(self, start_step: int):
+        """The distributed training input, positioned at `start_step` (see `training_dataset`)."""
+        cfg, global_batch = self.cfg, self.cfg.train.global_batch_size
         if global_batch % self.strategy.num_replicas_in_sync:
             raise ValueError(f"train.global_batch_size={global_batch} is not divisible by the "
                              f"{self.strategy.num_replicas_in_sync} replicas")
 
         def dataset_fn(ctx: tf.distribute.InputContext):
-            per_replica = ctx.get_per_replica_batch_size(global_batch)
-            return training_dataset(self.train_files, cfg, per_replica,
+            return training_dataset(self.train_files, cfg, ctx.get_per_replica_batch_size(global_batch),
                                     shard=(ctx.num_input_pipelines, ctx.input_pipeline_id)
                                     if ctx.num_input_pipelines > 1 else None,
                                     # each step takes one batch per replica fed by this pipeline
-                                    skip_batches=start_step * ctx.num_replicas_in_sync // ctx.num_input_pipelines)
+                                    skip_batches=start_step * ctx.num_replicas_in_sync // ctx.num_input_pipelines,
+                                    data_service_address=self.data_service_address)
 
-        dist_ds = self.strategy.distribute_datasets_from_function(dataset_fn)
-        iterator = iter(dist_ds)
-        writer = tf.summary.create_file_writer(os.path.join(self.model_dir, "train"))
+        return iter(self.strategy.distribute_datasets_from_function(dataset_fn))
+
+    def _log_step(self, writer, step: int, num_steps: int, loss_value: float, rate: float) -> None:
+        eta = (num_steps - step) / max(rate, 1e-9)
+        skipped = int(self.nonfinite_total.numpy())
+        self.log(f"step {step}/{num_steps} loss {loss_value:.4f} {rate:.2f} steps/s "
+                 f"ETA {int(eta // 60)}m{int(eta % 60):02d}s skipped_nonfinite {skipped}")
+        with writer.as_default(step=step):
+            tf.summary.scalar("loss", loss_value)
+            tf.summary.scalar("learning_rate", float(self.optimizer.learning_rate.numpy()))
+            tf.summary.scalar("steps_per_second", rate)
+            tf.summary.scalar("skipped_nonfinite_steps", skipped)
+
+    def _check_nonfinite(self, step: int) -> None:
+        in_row = int(self.nonfinite_in_row.numpy())
+        if in_row >= self.cfg.train.max_nonfinite_steps_in_row:
+            self.manager.save(checkpoint_number=step)
+            raise NonFiniteLossError(
+                f"{in_row} non-finite steps in a row at step {step} (skipped, weights untouched; "
+                f"{int(self.nonfinite_total.numpy())} in total). Check the input data and lower "
+                f"train.learning_rate or set train.grad_clip_norm")
+
+    def _finish(self, start_step: int, t_start: float, history: list) -> None:
+        """Final checkpoint (unless this step has one), history, and the non-chief's temporary directory removed."""
+        step = int(self.step.numpy())
+        if self.manager.latest_checkpoint is None or not self.manager.latest_checkpoint.endswith(f"-{step}"):
+            self.manager.save(checkpoint_number=step)
+        self.log(f"finished {step - start_step} steps in {time.time() - t_start:.1f} s; weights sha256 "
+                 f"{weights_fingerprint(self.model)}")
+        if self.is_chief:
+            with tf.io.gfile.GFile(os.path.join(self.model_dir, "train_history.json"), "w") as f:
+                json.dump({"loss": history}, f)
+        self.remove_worker_dir()
+
+    def remove_worker_dir(self) -> None:
+        """A non-chief worker's temporary checkpoint directory goes once training ends (the chief has none)."""
+        if not self.is_chief and tf.io.gfile.exists(self._write_dir):
+            tf.io.gfile.rmtree(self._write_dir)
+
+    def train(self, num_steps: int | None = None) -> dict:
+        """Runs (or resumes) training to `num_steps`: restore, input, steps with logging, checkpoints and the
+        periodic evaluation, a checkpoint on SIGINT/SIGTERM."""
+        cfg = self.cfg
+        num_steps = cfg.train.num_steps if num_steps is None else num_steps
+        self.restore_latest()  # before writing anything: a checkpoint of another config stops the run here
+        if self.is_chief:
+            tf.io.gfile.makedirs(self.model_dir)  # local or gs:// alike
+            cfg.save(os.path.join(self.model_dir, "config.yaml"))
+        start_step = int(self.step.numpy())
+        if start_step >= num_steps:
+            self.log(f"already at step {start_step} >= {num_steps}; nothing to do")
+            self.remove_worker_dir()
+            return {"step": start_step}
+        iterator = self._input_iterator(start_step)
+        writer = (tf.summary.create_file_writer(os.path.join(self.model_dir, "train")) if self.is_chief
+                  else tf.summary.create_noop_writer())
         previous = self._install_signal_handlers()
         t_start, last_log_t, last_log_step = time.time(), time.time(), start_step
-        loss_value = float("nan")
-        history = []
+        loss_value, history = float("nan"), []
         try:
             while int(self.step.numpy()) < num_steps:
-                with pairs.input_errors_named(self.train_files):  # a bad record stops here, before any weight update
+                with pairs.input_errors_named(self.train_files, self._decode_options):  # stops before any update
                     loss = self._train_step(iterator)
-                step = int(self.step.numpy())
-                loss_value = float(loss.numpy())
-                if int(self.nonfinite_in_row.numpy()) >= cfg.train.max_nonfinite_steps_in_row:
-                    self.manager.save(checkpoint_number=step)
-                    raise NonFiniteLossError(
-                        f"{int(self.nonfinite_in_row.numpy())} non-finite steps in a row at step {step} (skipped, "
-                        f"weights untouched; {int(self.nonfinite_total.numpy())} in total). Check the input data "
-                        f"and lower train.learning_rate or set train.grad_clip_norm")
+                step, loss_value = int(self.step.numpy()), float(loss.numpy())
+                self._check_nonfinite(step)
                 if step % cfg.train.log_every_steps == 0 or step == num_steps:
                     now = time.time()
-                    rate = (step - last_log_step) / max(now - last_log_t, 1e-9)
-                    eta = (num_steps - step) / max(rate, 1e-9)
-                    self.log(f"step {step}/{num_steps} loss {loss_value:.4f} {rate:.2f} steps/s "
-                             f"ETA {int(eta // 60)}m{int(eta % 60):02d}s skipped_nonfinite "
-                             f"{int(self.nonfinite_total.numpy())}")
+                    self._log_step(writer, step, num_steps, loss_value, (step - last_log_step) / max(now - last_log_t,
+                                                                                                     1e-9))
                     last_log_t, last_log_step = now, step
-                    with writer.as_default(step=step):
-                        tf.summary.scalar("loss", loss_value)
-                        tf.summary.scalar("learning_rate", float(self.optimizer.learning_rate.numpy()))
-                        tf.summary.scalar("steps_per_second", rate)
-                        tf.summary.scalar("skipped_nonfinite_steps", int(self.nonfinite_total.numpy()))
                     history.append((step, loss_value))
                 if step % cfg.train.checkpoint_every_steps == 0:
                     self.manager.save(checkpoint_number=step)
-                if self.val_files and cfg.train.eval_every_steps and step % cfg.train.eval_every_steps == 0:
+                if (self.is_chief and self.val_files and cfg.train.eval_every_steps
+                        and step % cfg.train.eval_every_steps == 0):
                     self.evaluate_subset(step)
                 if self._stop_signal is not None:
                     path = self.manager.save(checkpoint_number=step)
@@ -216,13 +311,8 @@ class Trainer:
         finally:
             for s, h in previous.items():
                 signal.signal(s, h)
-        step = int(self.step.numpy())
-        if self.manager.latest_checkpoint is None or not self.manager.latest_checkpoint.endswith(f"-{step}"):
-            self.manager.save(checkpoint_number=step)
-        self.log(f"finished {step - start_step} steps in {time.time() - t_start:.1f} s")
-        with tf.io.gfile.GFile(os.path.join(self.model_dir, "train_history.json"), "w") as f:
-            json.dump({"loss": history}, f)
-        return {"step": step, "loss": loss_value, "interrupted": False}
+        self._finish(start_step, t_start, history)
+        return {"step": int(self.step.numpy()), "loss": loss_value, "interrupted": False}
 
     def evaluate_subset(self, step: int) -> dict:
         """Per-class metrics on the first `eval_num_batches` validation batches, written to TensorBoard."""

@@ -56,12 +56,11 @@ def test_run_study_ground_removal(tiny_segment, tmp_path):
 
 
 def test_predict_from_checkpoint_on_wod_and_av2(tiny_segment, tiny_config, tmp_path):
-    import dataclasses
-
     import numpy as np
     from conftest import AV2_LOG, TINY_OVERRIDES
+    from ff3d_tf.config import replace_config
     from ff3d_tf.training.trainer import Trainer
-    cfg = dataclasses.replace(tiny_config, train=dataclasses.replace(tiny_config.train, eval_every_steps=0))
+    cfg = replace_config(tiny_config, {"train.eval_every_steps": 0})
     Trainer(cfg, str(tmp_path / "m"), [tiny_segment], log_fn=lambda s: None).train(1)
     sets = [a for s in TINY_OVERRIDES for a in ("--set", s)]
     for source, out in ((["--input", tiny_segment], "wod"), (["--av2_log", AV2_LOG], "av2")):

@@ -1,16 +1,15 @@
 """Training loop: a step changes weights, resume equals uninterrupted, non-finite steps never reach the weights."""
-import dataclasses
-
 import numpy as np
 import pytest
 import tensorflow as tf
 
+from ff3d_tf.config import replace_config
 from ff3d_tf.training.trainer import NonFiniteLossError, Trainer
 
 
 def _cfg(tiny_config, **train):
-    return dataclasses.replace(tiny_config, train=dataclasses.replace(
-        tiny_config.train, log_every_steps=1, checkpoint_every_steps=100, eval_every_steps=0, **train))
+    return replace_config(tiny_config, {"train.log_every_steps": 1, "train.checkpoint_every_steps": 100,
+                                        "train.eval_every_steps": 0, **{f"train.{k}": v for k, v in train.items()}})
 
 
 def _weights(trainer):
@@ -67,22 +66,14 @@ def test_nonfinite_steps_are_skipped_then_stop(tiny_segment, tiny_config, tmp_pa
 
 
 def test_bad_record_stops_training_with_its_name_or_is_skipped(tiny_records, tiny_config, tmp_path):
-    from waymo_open_dataset import dataset_pb2
-
+    import corrupt_records
     from ff3d_tf.data.waymo import FrameDecodeError
-    from ff3d_tf.data.wod_format import encode_matrix
-    frame = dataset_pb2.Frame.FromString(tiny_records[1])
-    image = np.full((24, 72, 4), 5.0, np.float32)
-    image[3, 4, 1] = np.nan
-    next(la for la in frame.lasers if la.name == 4).ri_return1.range_image_compressed = encode_matrix(image)
-    path = str(tmp_path / "bad.tfrecord")
-    with tf.io.TFRecordWriter(path) as w:
-        for record in (tiny_records[0], frame.SerializeToString(), tiny_records[2], tiny_records[3]):
-            w.write(record)
+    path = corrupt_records.write_records(str(tmp_path / "bad.tfrecord"), [
+        tiny_records[0], corrupt_records.nan_range_image(tiny_records[1], 4), tiny_records[2], tiny_records[3]])
     t = Trainer(_cfg(tiny_config), str(tmp_path / "m"), [path], log_fn=lambda s: None)
     with pytest.raises(FrameDecodeError, match=r"bad.tfrecord: record 1: field lasers\[SIDE_RIGHT\].ri_return1"):
         t.train(2)
     assert int(t.step.numpy()) < 2  # the step whose batch hit the bad record never ran
-    skip = dataclasses.replace(tiny_config, data=dataclasses.replace(tiny_config.data, skip_bad_records=True))
+    skip = replace_config(tiny_config, {"data.skip_bad_records": True})
     out = Trainer(_cfg(skip), str(tmp_path / "s"), [path], log_fn=lambda s: None).train(2)
     assert out["step"] == 2 and np.isfinite(out["loss"])

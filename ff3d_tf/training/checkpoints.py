@@ -1,0 +1,204 @@
+"""Checkpoints that can be trusted: verified against the live objects before a restore, damaged ones moved aside.
+
+A checkpoint is the prefix `DIR/ckpt-N` of `tf.train.CheckpointManager`: `ckpt-N.index` plus
+`ckpt-N.data-0000k-of-0000K`.
+`verify_checkpoint(root, prefix)` proves, before anything is restored, that
+
+1. the index exists and parses, and every data shard it needs exists;
+2. every variable reachable from `root` (a `tf.train.Checkpoint` of the model, optimizer, step...) is in the
+   checkpoint's object graph, with the same shape and dtype (else the error names the first variable that differs);
+3. each of those variables' bytes can be read back (a truncated data file or a flipped bit fails its checksum here).
+
+`restore_newest_intact` is the resume policy of training: the newest intact checkpoint wins; newer damaged ones are
+moved to `DIR/damaged/` (never deleted) with a REASON.txt; if checkpoints exist but none is intact it stops with
+`CheckpointError` and moves nothing, so a rerun can never restart a long run from step 0 over its checkpoints.
+"""
+from __future__ import annotations
+
+import collections
+import os
+import re
+
+import keras
+import tensorflow as tf
+from tensorflow.core.protobuf import trackable_object_graph_pb2
+
+DAMAGED_DIR = "damaged"
+_OBJECT_GRAPH_KEY = "_CHECKPOINTABLE_OBJECT_GRAPH"
+_VARIABLE_ATTRIBUTE = "VARIABLE_VALUE"
+_FILE_RE = re.compile(r"^(?P<prefix>.+-(?P<number>\d+))\.(?:index|data-\d{5}-of-(?P<shards>\d{5}))$")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that cannot be restored into the given objects; the message names it and says why."""
+
+    def __init__(self, prefix: str, reason: str):
+        super().__init__(f"checkpoint {prefix} is unusable: {reason}")
+        self.prefix, self.reason = prefix, reason
+
+
+def list_checkpoints(checkpoint_dir: str) -> list[str]:
+    """Checkpoint prefixes in `checkpoint_dir` (any file of one counts, so half-written ones too), newest first.
+
+    Found from the files themselves, not from the `checkpoint` state file (which a killed save may leave behind the
+    files, or ahead of them).
+    """
+    if not tf.io.gfile.isdir(checkpoint_dir):
+        return []
+    numbers = {}
+    for name in tf.io.gfile.listdir(checkpoint_dir):
+        match = _FILE_RE.match(name.rstrip("/"))
+        if match:
+            numbers[match["prefix"]] = int(match["number"])
+    return [os.path.join(checkpoint_dir, p) for p in sorted(numbers, key=lambda p: (numbers[p], p), reverse=True)]
+
+
+def _live_variables(root) -> list[tuple[str, list[str], object]]:
+    """(path, child names from the root, variable) of every variable reachable from `root`, breadth first.
+
+    Breadth first over `tf.train.TrackableView` children is how the checkpoint's object graph was built, so the
+    first path found for a shared variable (e.g. an optimizer's `_variables` and `_momentums`) is the saved one.
+    """
+    view = tf.train.TrackableView(root)
+    seen, found = {id(root)}, []
+    queue = collections.deque([([], root)])
+    while queue:
+        names, obj = queue.popleft()
+        for name, child in view.children(obj).items():
+            if id(child) in seen:
+                continue
+            seen.add(id(child))
+            if isinstance(child, (tf.Variable, keras.Variable)):
+                found.append(("/".join(names + [name]), names + [name], child))
+            else:
+                queue.append((names + [name], child))
+    return found
+
+
+def _object_graph(reader, prefix: str):
+    if not reader.has_tensor(_OBJECT_GRAPH_KEY):
+        raise CheckpointError(prefix, "it holds no object graph (not written by tf.train.Checkpoint)")
+    try:
+        data = reader.get_tensor(_OBJECT_GRAPH_KEY)
+    except Exception as e:  # truncated shard or checksum mismatch, whatever TF calls it
+        raise CheckpointError(prefix, f"its object graph cannot be read ({type(e).__name__}: data file truncated "
+                                      f"or corrupt)") from e
+    try:
+        return trackable_object_graph_pb2.TrackableObjectGraph.FromString(data)
+    except Exception as e:  # a decode error of any kind: the bytes are not an object graph
+        raise CheckpointError(prefix, f"its object graph does not parse ({type(e).__name__})") from e
+
+
+def _checkpoint_key(graph, names: list[str]) -> str | None:
+    """The tensor key of the variable at `names` in the saved object graph, or None when the graph lacks it."""
+    node = graph.nodes[0]
+    for name in names:
+        children = {c.local_name: c.node_id for c in node.children}
+        if name not in children:
+            return None
+        node = graph.nodes[children[name]]
+    keys = [a.checkpoint_key for a in node.attributes if a.name == _VARIABLE_ATTRIBUTE]
+    return keys[0] if keys else None
+
+
+def _check_files(prefix: str) -> None:
+    gfile = tf.io.gfile
+    if not gfile.exists(prefix + ".index"):
+        raise CheckpointError(prefix, f"its index file {os.path.basename(prefix)}.index is missing")
+    shards = [f for f in gfile.glob(prefix + ".data-*-of-*") if _FILE_RE.match(os.path.basename(f))]
+    if not shards:
+        raise CheckpointError(prefix, f"its data file {os.path.basename(prefix)}.data-00000-of-* is missing")
+    total = int(_FILE_RE.match(os.path.basename(shards[0]))["shards"])
+    for k in range(total):
+        name = f"{prefix}.data-{k:05d}-of-{total:05d}"
+        if not gfile.exists(name):
+            raise CheckpointError(prefix, f"its data file {os.path.basename(name)} is missing")
+
+
+def verify_checkpoint(root, prefix: str) -> int:
+    """Raises `CheckpointError` unless every variable of `root` can be restored from `prefix`; returns their count.
+
+    Reads each expected variable's bytes once (the whole model and optimizer for training: about one extra read of
+    the checkpoint at start-up).
+    """
+    _check_files(prefix)
+    try:
+        # Not tf.train.load_checkpoint: on some filesystems (ram://) it takes a prefix for a directory.
+        reader = tf.compat.v1.train.NewCheckpointReader(prefix)
+    except Exception as e:  # TF raises several types for an unreadable index; the reason is ours to state
+        raise CheckpointError(prefix, f"its index {os.path.basename(prefix)}.index cannot be read "
+                                      f"({type(e).__name__}: damaged or not a checkpoint index)") from e
+    graph = _object_graph(reader, prefix)
+    saved_shapes, saved_dtypes = reader.get_variable_to_shape_map(), reader.get_variable_to_dtype_map()
+    variables = _live_variables(root)
+    for path, names, variable in variables:
+        key = _checkpoint_key(graph, names)
+        if key is None or key not in saved_shapes:
+            raise CheckpointError(prefix, f"variable {path} is not in it (a checkpoint of another model or config?)")
+        want_shape, got_shape = tuple(variable.shape), tuple(saved_shapes[key])
+        want_dtype, got_dtype = tf.as_dtype(variable.dtype), tf.as_dtype(saved_dtypes[key])
+        if want_shape != got_shape or want_dtype != got_dtype:
+            raise CheckpointError(prefix, f"variable {path} is {got_dtype.name}{list(got_shape)} in the checkpoint "
+                                          f"but {want_dtype.name}{list(want_shape)} in this model (a checkpoint of "
+                                          f"another config?)")
+        try:
+            reader.get_tensor(key)
+        except Exception as e:  # truncated shard or checksum mismatch, whatever TF calls it
+            raise CheckpointError(prefix, f"the data of variable {path} cannot be read ({type(e).__name__}: data "
+                                          f"file truncated or corrupt)") from e
+    return len(variables)
+
+
+def move_aside(prefix: str, reason: str) -> str:
+    """Moves the files of `prefix` into `DIR/damaged/<name>[_k]/` with a REASON.txt; returns that folder."""
+    gfile = tf.io.gfile
+    base = os.path.join(os.path.dirname(prefix), DAMAGED_DIR, os.path.basename(prefix))
+    target, k = base, 1
+    while gfile.exists(target):
+        k += 1
+        target = f"{base}_{k}"
+    gfile.makedirs(target)
+    with gfile.GFile(os.path.join(target, "REASON.txt"), "w") as f:
+        f.write(reason + "\n")
+    for name in gfile.glob(prefix + ".*"):
+        match = _FILE_RE.match(os.path.basename(name))
+        if match and match["prefix"] == os.path.basename(prefix):  # its index and data files only
+            gfile.rename(name, os.path.join(target, os.path.basename(name)))
+    return target
+
+
+def newest_intact(root, checkpoint_dir: str, log_fn=print, move_damaged: bool = True) -> str | None:
+    """The newest checkpoint of `checkpoint_dir` that verifies against `root`; None when there is none at all.
+
+    Damaged checkpoints newer than it are moved aside (logged), unless `move_damaged` is False (multi-worker
+    training: only the chief moves files, the other workers only skip them). When checkpoints exist and none verifies, raises
+    `CheckpointError` naming each with its reason and moves nothing.
+    """
+    candidates = list_checkpoints(checkpoint_dir)
+    damaged = []
+    for prefix in candidates:
+        try:
+            verify_checkpoint(root, prefix)
+        except CheckpointError as e:
+            damaged.append(e)
+            continue
+        for e in damaged:
+            where = f"moved to {move_aside(e.prefix, e.reason)}" if move_damaged else "left for the chief to move"
+            log_fn(f"{e}; {where}, resuming from the older {prefix}")
+        return prefix
+    if damaged:
+        listing = "; ".join(f"{os.path.basename(e.prefix)}: {e.reason}" for e in damaged)
+        raise CheckpointError(checkpoint_dir, f"none of its {len(damaged)} checkpoints is intact and fits this "
+                                              f"model ({listing}). "
+                                              f"Nothing was moved or overwritten. To start from step 0 anyway, move "
+                                              f"them out of {checkpoint_dir} or pass a new model_dir")
+    return None
+
+
+def restore_newest_intact(checkpoint: tf.train.Checkpoint, checkpoint_dir: str, log_fn=print,
+                          move_damaged: bool = True) -> str | None:
+    """Restores `checkpoint` from `newest_intact`; returns the prefix used, or None (nothing to resume)."""
+    prefix = newest_intact(checkpoint, checkpoint_dir, log_fn, move_damaged)
+    if prefix is not None:
+        checkpoint.restore(prefix).assert_existing_objects_matched()
+    return prefix

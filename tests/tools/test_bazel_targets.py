@@ -1,0 +1,195 @@
+"""tools/check_bazel_targets.py: catches test files and modules without a Bazel target, wrong deps and slow splits."""
+import importlib.util
+import os
+import subprocess
+import sys
+import textwrap
+
+# The checkout (realpath: under Bazel this file is a symlink in the runfiles tree, which holds only declared inputs).
+CHECKOUT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.realpath(__file__))))
+CHECKER = os.path.join(CHECKOUT, "tools", "check_bazel_targets.py")
+
+FAKE_TREE = {
+    "ff3d_tf/__init__.py": '"""Package."""\n',
+    "ff3d_tf/base.py": "VALUE = 1\n",
+    "ff3d_tf/sub/__init__.py": "",
+    "ff3d_tf/sub/uses.py": "from ff3d_tf import base\nfrom ff3d_tf.sub.helpers import twice\n",
+    "ff3d_tf/sub/helpers.py": "def twice(x):\n    return 2 * x\n",
+    "tools/_common.py": "import os\n",
+    "tools/run.py": 'import _common\nfrom ff3d_tf.sub import uses\nDEFAULT = "configs/x.yaml"\n',
+    "tests/conftest.py": "import pytest\n",
+    "tests/test_base.py": textwrap.dedent("""\
+        import pytest
+        from ff3d_tf.base import VALUE
+
+        def test_value():
+            assert VALUE == 1
+
+        @pytest.mark.slow
+        def test_value_slowly():
+            assert VALUE == 1
+        """),
+    "tests/sub/test_uses.py": textwrap.dedent("""\
+        import subprocess
+        from conftest import ROOT
+        from ff3d_tf.sub import uses
+
+        def test_tool():
+            subprocess.run(["python", "tools/run.py"], check=True)
+        """),
+}
+
+FAKE_BUILD = {
+    "ff3d_tf/BUILD": """
+        py_library(name = "ff3d_tf", srcs = ["__init__.py"])
+        py_library(name = "base", srcs = ["base.py"])
+        """,
+    "ff3d_tf/sub/BUILD": """
+        py_library(name = "sub", srcs = ["__init__.py"])
+        py_library(name = "uses", srcs = ["uses.py"], deps = [":helpers", "//ff3d_tf:base"])
+        py_library(name = "helpers", srcs = ["helpers.py"])
+        """,
+    "tools/BUILD": """
+        py_library(name = "_common", srcs = ["_common.py"])
+        py_binary(name = "run", srcs = ["run.py"], data = ["//configs"], deps = [":_common", "//ff3d_tf/sub:uses"])
+        """,
+    "configs/BUILD": 'filegroup(name = "configs", srcs = glob(["*.yaml"]))',
+    "tests/BUILD": """
+        load("//bazel:pytest.bzl", "pytest_test")
+        py_library(name = "conftest", srcs = ["conftest.py"])
+        pytest_test(name = "test_base", deps = ["//ff3d_tf:base"], slow = True)
+        """,
+    "tests/sub/BUILD": """
+        load("//bazel:pytest.bzl", "pytest_test")
+        pytest_test(name = "test_uses", data = ["//tools:run"], deps = ["//ff3d_tf/sub:uses"])
+        """,
+}
+
+
+def _write(root, files):
+    for rel, text in files.items():
+        path = os.path.join(root, rel)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, "w") as f:
+            f.write(textwrap.dedent(text).lstrip("\n"))
+
+
+def _run_checker(root, *flags):
+    return subprocess.run([sys.executable, CHECKER, "--root", str(root), *flags], capture_output=True, text=True,
+                          timeout=120)
+
+
+def _check(root, *flags):
+    out = _run_checker(root, *flags)
+    return out.returncode, out.stdout + out.stderr
+
+
+def _fake_tree(tmp_path):
+    _write(tmp_path, FAKE_TREE)
+    _write(tmp_path, FAKE_BUILD)
+    return tmp_path
+
+
+def test_complete_tree_passes(tmp_path):
+    rc, out = _check(_fake_tree(tmp_path))
+    assert rc == 0, out
+    assert "cover the tree (10 source files)" in out
+
+
+def test_new_test_file_is_caught_and_its_stanza_fixes_it(tmp_path):
+    root = _fake_tree(tmp_path)
+    _write(root, {"tests/sub/test_new.py": """
+        import pytest
+        from ff3d_tf.sub import helpers
+
+        @pytest.mark.parametrize("x", [1, pytest.param(2, marks=pytest.mark.slow)])
+        def test_twice(x):
+            assert helpers.twice(x) == 2 * x
+        """})
+    rc, out = _check(root)
+    assert rc == 1
+    assert "tests/sub/test_new.py: no pytest_test 'test_new' in tests/sub/BUILD" in out
+    printed = _run_checker(root, "--print-missing")
+    assert printed.returncode == 1
+    stanza = printed.stdout[printed.stdout.index("# ---- add to tests/sub/BUILD"):]
+    assert 'name = "test_new"' in stanza and 'deps = ["//ff3d_tf/sub:helpers"]' in stanza and "slow = True" in stanza
+    assert "fast = False" not in stanza  # the unmarked case is a fast test
+    with open(root / "tests/sub/BUILD", "a") as f:  # paste it as printed
+        f.write("\n" + stanza.split("\n", 1)[1])
+    assert _check(root) == (0, "Bazel targets cover the tree (11 source files)\n")
+
+
+def test_new_module_is_caught_and_fix_writes_it(tmp_path):
+    root = _fake_tree(tmp_path)
+    _write(root, {"ff3d_tf/sub/more.py": "import numpy\nfrom ff3d_tf.sub.helpers import twice\n",
+                  "ff3d_tf/newpkg/__init__.py": "from ff3d_tf import base\n"})
+    rc, out = _check(root)
+    assert rc == 1
+    assert "ff3d_tf/sub/more.py: no py_library 'more' in ff3d_tf/sub/BUILD" in out
+    assert "ff3d_tf/newpkg/__init__.py: no ff3d_tf/newpkg/BUILD" in out
+    rc, out = _check(root, "--fix")
+    assert rc == 0, out
+    with open(root / "ff3d_tf/newpkg/BUILD") as f:
+        assert 'name = "newpkg",\n    srcs = ["__init__.py"],\n    deps = ["//ff3d_tf:base"],' in f.read()
+    with open(root / "ff3d_tf/sub/BUILD") as f:
+        assert 'name = "more",\n    srcs = ["more.py"],\n    deps = [":helpers"],' in f.read()
+
+
+def test_wrong_deps_data_and_slow_split_are_named(tmp_path):
+    root = _fake_tree(tmp_path)
+    build = dict(FAKE_BUILD)
+    build["ff3d_tf/sub/BUILD"] = build["ff3d_tf/sub/BUILD"].replace('":helpers", ', "")  # import without a dep
+    build["tools/BUILD"] = build["tools/BUILD"].replace(', "//ff3d_tf/sub:uses"', ', "//ff3d_tf:base"')
+    build["tests/BUILD"] = build["tests/BUILD"].replace(", slow = True", "")  # the file has a slow test
+    build["tests/sub/BUILD"] = build["tests/sub/BUILD"].replace('data = ["//tools:run"], ', "")
+    _write(root, build)
+    rc, out = _check(root)
+    assert rc == 1
+    assert "ff3d_tf/sub/BUILD target 'uses' deps lack //ff3d_tf/sub:helpers" in out
+    assert "target 'run' deps lack //ff3d_tf/sub:uses" in out
+    assert "target 'run' deps name modules it does not import: //ff3d_tf:base" in out
+    assert "target 'test_base' has fast = True, slow = False; the file needs fast = True, slow = True" in out
+    assert "target 'test_uses' data lack //tools:run" in out
+    assert out.count("\n  ") == 5, out  # nothing else
+    # --fix rewrites the targets, keeping attributes it does not derive and data it cannot see.
+    with open(root / "tests/BUILD", "a") as f:
+        f.write('pytest_test(name = "test_more", timeout = "eternal", data = ["//configs"], fast = False, slow = True)\n')
+    _write(root, {"tests/test_more.py": "def test_x():\n    pass\n"})
+    rc, out = _check(root, "--fix")
+    assert rc == 0, out
+    with open(root / "tests/BUILD") as f:
+        text = f.read()
+    assert 'pytest_test(\n    name = "test_more",\n    data = ["//configs"],\n    timeout = "eternal",\n)' in text
+    assert 'name = "test_base",\n    deps = ["//ff3d_tf:base"],\n    slow = True,\n)' in text
+
+
+def test_only_slow_file_and_removed_source(tmp_path):
+    root = _fake_tree(tmp_path)
+    _write(root, {"tests/test_base.py": "import pytest\nfrom ff3d_tf.base import VALUE\n"
+                                        "pytestmark = pytest.mark.slow\n\ndef test_value():\n    assert VALUE\n"})
+    os.remove(root / "ff3d_tf/sub/helpers.py")
+    with open(root / "ff3d_tf/sub/uses.py", "w") as f:
+        f.write("from ff3d_tf import base\n")
+    _write(root, {"tools/half_written.py": "def main(:\n"})
+    rc, out = _check(root)
+    assert rc == 1
+    assert "the file needs fast = False, slow = True" in out
+    assert "ff3d_tf/sub/BUILD target 'helpers': source ff3d_tf/sub/helpers.py does not exist" in out
+    assert "ff3d_tf/sub/BUILD target 'uses' deps name modules it does not import: //ff3d_tf/sub:helpers" in out
+    assert "tools/half_written.py: cannot parse (invalid syntax" in out
+
+
+def test_this_checkout_is_covered():
+    rc, out = _check(CHECKOUT)
+    assert rc == 0, out
+
+
+def test_pytest_runner_maps_bazel_test_environment():
+    spec = importlib.util.spec_from_file_location("pytest_runner", os.path.join(CHECKOUT, "bazel", "pytest_runner.py"))
+    runner = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(runner)
+    env = {"TEST_TMPDIR": "/t", "XML_OUTPUT_FILE": "/x/test.xml", "TESTBRIDGE_TEST_ONLY": "bucketed"}
+    assert runner.pytest_args(["-m", "not slow", "tests/test_a.py"], env) == [
+        "-q", "-p", "no:cacheprovider", "-m", "not slow", "tests/test_a.py", "--basetemp", "/t/pytest",
+        "--junitxml", "/x/test.xml", "-k", "bucketed"]
+    assert runner.pytest_args(["tests/test_a.py"], {}) == ["-q", "-p", "no:cacheprovider", "tests/test_a.py"]

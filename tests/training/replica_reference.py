@@ -1,0 +1,79 @@
+"""The two-replica reference of the training step, written out with one model and no strategy (used by the
+distributed and multi-worker tests).
+
+Semantics (the paper's setting, per-replica BatchNorm): each replica runs forward/backward on its own samples with its
+own batch statistics; the loss is summed over samples and divided by the global batch; gradients are summed over
+replicas and applied once; each BatchNorm moving statistic becomes the mean of the replicas' updated values.
+"""
+import numpy as np
+import tensorflow as tf
+
+from ff3d_tf.config import replace_config
+from ff3d_tf.data import pairs
+from ff3d_tf.inference.predictor import model_inputs
+from ff3d_tf.model import build_model
+from ff3d_tf.training.losses import per_sample_flow_loss
+from ff3d_tf.training.trainer import make_optimizer
+
+GLOBAL_BATCH = 2
+
+
+def replica_config(tiny_config):
+    return replace_config(tiny_config, {"train.global_batch_size": GLOBAL_BATCH, "train.log_every_steps": 1,
+                                        "train.checkpoint_every_steps": 1000, "train.eval_every_steps": 0,
+                                        "train.learning_rate": 1e-2})
+
+
+def batches(segment, cfg, count):
+    """`count` global batches of GLOBAL_BATCH pairs (padded to one bucket), as NumPy dicts."""
+    ds = pairs.batch_examples(pairs.pair_dataset([segment], cfg).repeat(), GLOBAL_BATCH,
+                              cfg.data.point_bucket_base, drop_remainder=True)
+    return [{k: v.numpy() for k, v in b.items()} for b in ds.take(count)]
+
+
+def moving_stats(model):
+    return [v for v in model.non_trainable_variables]
+
+
+class Reference:
+    """One model, no strategy: per-sample forward/backward, summed gradients, one Adam update, mean BN statistics."""
+
+    def __init__(self, cfg, weights):
+        self.cfg = cfg
+        self.model = build_model(cfg)
+        self.model.set_weights(weights)
+        self.optimizer = make_optimizer(cfg)
+        self.optimizer.build(self.model.trainable_variables)
+
+    def _sample_loss_and_grads(self, sample):
+        with tf.GradientTape() as tape:
+            out = self.model(model_inputs(sample), training=True)
+            valid = out["point_valid"] & sample["point_mask_t0"]
+            loss = tf.reduce_sum(per_sample_flow_loss(sample["flow_mps_t0"], out["flow_mps"], sample["class_id_t0"],
+                                                      valid, self.cfg.train.background_weight)) / GLOBAL_BATCH
+        return loss, tape.gradient(loss, self.model.trainable_variables)
+
+    def step(self, batch):
+        """One global batch: sample i is replica i's."""
+        return self.step_samples([{k: v[i:i + 1] for k, v in batch.items()} for i in range(GLOBAL_BATCH)])
+
+    def step_samples(self, samples):
+        """`samples[i]`: replica i's per-replica batch of one pair (each padded to its own bucket).
+
+        Compiled as the trainer compiles its per-replica step, so both run the same XLA program per sample (an
+        eager reference differs in float rounding, which Adam's first steps amplify where |gradient| ~ epsilon).
+        """
+        grad_fn = tf.function(self._sample_loss_and_grads, jit_compile=self.cfg.model.jit_compile)
+        start = [v.numpy() for v in moving_stats(self.model)]
+        grads_sum, loss_sum, updated = None, 0.0, []
+        for sample in samples:
+            for v, s in zip(moving_stats(self.model), start):
+                v.assign(s)  # every replica starts from the same moving statistics
+            loss, grads = grad_fn(sample)
+            grads_sum = grads if grads_sum is None else [a + b for a, b in zip(grads_sum, grads)]
+            loss_sum += float(loss)
+            updated.append([v.numpy() for v in moving_stats(self.model)])
+        for i, v in enumerate(moving_stats(self.model)):
+            v.assign(np.mean([u[i] for u in updated], axis=0))
+        self.optimizer.apply_gradients(zip(grads_sum, self.model.trainable_variables))
+        return loss_sum

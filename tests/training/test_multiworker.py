@@ -1,0 +1,126 @@
+"""Multi-worker training on localhost: two `tools/train.py` processes with TF_CONFIG (one CPU replica each).
+
+They must end bit-identical to each other and equal to the two-replica reference of `test_distributed` fed the same
+pairs (worker w reads shard w of the pairs); only the chief writes into model_dir; a killed pair of workers resumes
+from the chief's checkpoint.
+"""
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import tensorflow as tf
+
+from conftest import ROOT, TINY_OVERRIDES
+from replica_reference import GLOBAL_BATCH, Reference, replica_config
+
+from ff3d_tf.inference.predictor import restore_model
+from ff3d_tf.training.trainer import training_dataset
+
+STEPS = 3
+
+
+def _free_ports(n):
+    socks = [socket.socket() for _ in range(n)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+    ports = [s.getsockname()[1] for s in socks]
+    for s in socks:
+        s.close()
+    return ports
+
+
+def _sets(cfg_overrides):
+    return [a for kv in cfg_overrides for a in ("--set", kv)]
+
+
+SETS = TINY_OVERRIDES + ("train.global_batch_size=2", "train.log_every_steps=1", "train.eval_every_steps=0",
+                         "train.learning_rate=1e-2", "train.checkpoint_every_steps=1")
+
+
+def _start_workers(data_dir, model_dir, steps):
+    ports = _free_ports(GLOBAL_BATCH)
+    procs = []
+    for index in range(GLOBAL_BATCH):
+        tf_config = {"cluster": {"worker": [f"127.0.0.1:{p}" for p in ports]},
+                     "task": {"type": "worker", "index": index}}
+        env = dict(os.environ, TF_CONFIG=json.dumps(tf_config), PYTHONUNBUFFERED="1")
+        procs.append(subprocess.Popen(
+            [sys.executable, "tools/train.py", "--data_dir", data_dir, "--model_dir", model_dir]
+            + _sets(SETS + (f"train.num_steps={steps}",)), cwd=ROOT, env=env, stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT, text=True))
+    return procs
+
+
+def _finish(procs, timeout=600):
+    outs = []
+    for p in procs:
+        out, _ = p.communicate(timeout=timeout)
+        assert p.returncode == 0, out[-3000:]
+        outs.append(out)
+    return outs
+
+
+def _reference(tiny_segment, cfg, weights, steps):
+    """The reference fed what each worker reads: element s of its shard's per-replica stream at step s."""
+    streams = [iter(training_dataset([tiny_segment], cfg, 1, shard=(GLOBAL_BATCH, w))) for w in range(GLOBAL_BATCH)]
+    ref = Reference(cfg, weights)
+    for _ in range(steps):
+        ref.step_samples([{k: v.numpy() for k, v in next(s).items()} for s in streams])
+    return ref
+
+
+def _fingerprints(outs):
+    return [re.search(r"weights sha256 ([0-9a-f]+)", o).group(1) for o in outs]
+
+
+def _initial_weights(cfg):
+    import keras
+    from ff3d_tf.model import build_model
+    keras.utils.set_random_seed(cfg.train.seed)  # what every worker's Trainer does before building its model
+    return build_model(cfg).get_weights()
+
+
+def test_two_workers_equal_each_other_and_the_reference(tiny_segment, tiny_config, tmp_path):
+    cfg = replica_config(tiny_config)
+    model_dir = str(tmp_path / "m")
+    outs = _finish(_start_workers(os.path.dirname(tiny_segment), model_dir, STEPS))
+    fingerprints = _fingerprints(outs)
+    assert fingerprints[0] == fingerprints[1], "workers ended with different weights"
+    assert "[worker]" in outs[1] and "[worker]" not in outs[0]
+    # Only the chief wrote into model_dir; the other worker's temporary directory is gone.
+    assert sorted(os.listdir(model_dir)) == ["checkpoints", "config.yaml", "train", "train_history.json"]
+    assert tf.train.latest_checkpoint(os.path.join(model_dir, "checkpoints")).endswith(f"ckpt-{STEPS}")
+    ref = _reference(tiny_segment, cfg, _initial_weights(cfg), STEPS)
+    trained = restore_model(cfg, model_dir)
+    for a, b in zip(trained.variables, ref.model.variables):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6, err_msg=a.path)
+
+
+@pytest.mark.slow
+def test_killed_workers_resume_from_the_chiefs_checkpoint(tiny_segment, tiny_config, tmp_path):
+    cfg = replica_config(tiny_config)
+    model_dir = str(tmp_path / "m")
+    procs = _start_workers(os.path.dirname(tiny_segment), model_dir, 2 * STEPS)
+    ckpt_dir = os.path.join(model_dir, "checkpoints")
+    deadline = time.time() + 600
+    while not (os.path.isdir(ckpt_dir) and any(f.startswith("ckpt-2.index") for f in os.listdir(ckpt_dir))):
+        assert time.time() < deadline and all(p.poll() is None for p in procs), "no checkpoint 2 appeared"
+        time.sleep(0.2)
+    for p in procs:
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+    outs = _finish(_start_workers(os.path.dirname(tiny_segment), model_dir, 2 * STEPS))
+    assert all("resumed from" in o for o in outs)
+    fingerprints = _fingerprints(outs)
+    assert fingerprints[0] == fingerprints[1]
+    ref = _reference(tiny_segment, cfg, _initial_weights(cfg), 2 * STEPS)
+    trained = restore_model(cfg, model_dir)
+    for a, b in zip(trained.variables, ref.model.variables):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6, err_msg=a.path)
