@@ -173,6 +173,9 @@ class Trainer:
 
     @tf.function
     def _train_step(self, iterator):
+        # BatchNorm moving statistics change in the forward pass: kept here so a non-finite step can undo that too.
+        moving = self.model.non_trainable_variables
+        moving_before = [tf.identity(v.value) for v in moving]
         loss, grads = self.strategy.run(self._replica_step, args=(next(iterator),))
         loss = self.strategy.experimental_local_results(loss)[0]
         grads = [self.strategy.experimental_local_results(g)[0] for g in grads]
@@ -189,6 +192,8 @@ class Trainer:
             return tf.constant(True)
 
         def skip():
+            for var, value in zip(moving, moving_before):
+                var.assign(value)
             self.nonfinite_total.assign_add(1)
             self.nonfinite_in_row.assign_add(1)
             return tf.constant(False)

@@ -52,10 +52,11 @@ def test_nonfinite_steps_are_skipped_then_stop(tiny_segment, tiny_config, tmp_pa
     cfg = _cfg(tiny_config, max_nonfinite_steps_in_row=2)
     t = Trainer(cfg, str(tmp_path / "n"), [tiny_segment], log_fn=lambda s: None)
     before = _weights(t)
+    moving_before = [v.numpy().copy() for v in t.model.non_trainable_variables]
     original = t._grad_fn
 
     def poisoned(batch):
-        loss, grads = original(batch)
+        loss, grads = original(batch)  # the forward pass does move the BatchNorm statistics
         return loss * np.nan, grads
     t._grad_fn = poisoned
     with pytest.raises(NonFiniteLossError, match="non-finite steps in a row"):
@@ -63,6 +64,8 @@ def test_nonfinite_steps_are_skipped_then_stop(tiny_segment, tiny_config, tmp_pa
     assert int(t.nonfinite_total.numpy()) == 2
     for a, b in zip(before, _weights(t)):
         np.testing.assert_array_equal(a, b)
+    for a, b in zip(moving_before, t.model.non_trainable_variables):  # BatchNorm statistics restored too
+        np.testing.assert_array_equal(a, b.numpy())
 
 
 def test_bad_record_stops_training_with_its_name_or_is_skipped(tiny_records, tiny_config, tmp_path):
