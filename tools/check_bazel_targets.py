@@ -39,7 +39,7 @@ PYTEST_LOAD = 'load("//bazel:pytest.bzl", "pytest_test")'
 # Reading BUILD files
 
 class BuildFileError(ValueError):
-    pass
+    """A BUILD file this checker cannot read (its message names the file and what is wrong)."""
 
 
 def read_build_file(path: str, package_dir: str) -> dict[str, dict]:

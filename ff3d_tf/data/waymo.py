@@ -36,7 +36,7 @@ DECODE_WORKERS = 2  # threads of decoded_records; each decode also runs its inde
 # Declared range image sizes beyond these are refused before anything of that size is allocated (a WOD TOP range
 # image is 64 x 2650; a decompressed matrix is never reshaped to dims its data does not fill).
 MAX_RANGE_IMAGE_DIM = 1 << 16
-POSE_RIGIDITY_TOLERANCE = 1e-4  # max |R R^T - I| of a frame pose (WOD poses are rigid to float64 precision)
+POSE_RIGIDITY_TOLERANCE = wod_format.POSE_RIGIDITY_TOLERANCE
 # Messages the decoder parses with decode_proto (what `diagnose_record` descends into).
 _DECODED_MESSAGES = ("Frame", "Context", "LaserCalibration", "Laser", "RangeImage", "Transform")
 TF_OPS = wod_format.ArrayOps(to_f64=lambda x: tf.cast(x, tf.float64),

@@ -6,6 +6,7 @@ padded pair of `ff3d_tf.data.pairs.padded_singletons`, as NumPy arrays trimmed t
 """
 from __future__ import annotations
 
+import abc
 import os
 
 import numpy as np
@@ -13,7 +14,7 @@ import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.model import build_model
-from ff3d_tf.training.checkpoints import CheckpointError, list_checkpoints, verify_checkpoint
+from ff3d_tf.training.checkpoints import CheckpointError, list_checkpoints, newest_intact, verify_checkpoint
 from ff3d_tf.model.fastflow3d import INPUT_KEYS
 
 
@@ -53,23 +54,17 @@ def restore_model(cfg: ExperimentConfig, checkpoint_path: str):
     try:
         verify_checkpoint(root, prefix)
     except CheckpointError as e:
-        older = [p for p in list_checkpoints(os.path.dirname(prefix)) if p != prefix] \
-            if prefix != checkpoint_path else []  # a model_dir was given: say which checkpoint would work
-        intact = next((p for p in older if _verifies(root, p)), None)
-        if intact is not None:
-            raise CheckpointError(prefix, f"{e.reason}; the newest intact checkpoint is {intact} (pass it as the "
-                                          f"checkpoint, or rerun training to resume from it)") from e
+        if prefix != checkpoint_path:  # a model_dir was given: say which of its checkpoints would work
+            try:
+                intact = newest_intact(root, os.path.dirname(prefix), log_fn=lambda _: None, move_damaged=False)
+            except CheckpointError:
+                intact = None
+            if intact is not None:
+                raise CheckpointError(prefix, f"{e.reason}; the newest intact checkpoint is {intact} (pass it as "
+                                              f"the checkpoint, or rerun training to resume from it)") from e
         raise
     root.restore(prefix).expect_partial()
     return model
-
-
-def _verifies(root, prefix: str) -> bool:
-    try:
-        verify_checkpoint(root, prefix)
-        return True
-    except CheckpointError:
-        return False
 
 
 def is_saved_model(path: str) -> bool:
@@ -83,11 +78,12 @@ def raw_tm1_points(example: dict) -> np.ndarray:
     return np.concatenate([xyz.astype(np.float32), example["point_features_tm1"]], -1)
 
 
-class Predictor:
+class Predictor(abc.ABC):
     """Flow for one padded pair; subclasses differ only in what they run."""
 
+    @abc.abstractmethod
     def predict(self, batch: dict, example: dict) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
+        """(flow_mps [N0,3], point_valid [N0]) for the pair's real t0 points, as NumPy arrays."""
 
 
 class ModelPredictor(Predictor):

@@ -21,9 +21,11 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf.data.pairs import _bucket_size_tf, transform_points
+from ff3d_tf.data.wod_format import POSE_RIGIDITY_TOLERANCE
 from ff3d_tf.model.fastflow3d import FastFlow3D
 
-POSE_TOLERANCE = 1e-4  # max |R^T R - I| and max |bottom row - [0, 0, 0, 1]| of an accepted pose
+# max |R^T R - I| and max |bottom row - [0, 0, 0, 1]| of an accepted pose: the reader's tolerance for frame poses
+POSE_TOLERANCE = POSE_RIGIDITY_TOLERANCE
 POSE_NAMES = ("pose_tm1", "pose_t0")
 
 

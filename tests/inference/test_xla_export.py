@@ -26,9 +26,10 @@ for name in ("tensorflow", "keras", "tf_keras"):
     sys.modules[name] = None  # an import of a None entry raises ImportError
 try:
     import tensorflow
-    raise SystemExit("the shim failed to block tensorflow")
 except ImportError:
-    pass
+    tensorflow = None
+if tensorflow is not None:
+    raise SystemExit("the shim failed to block tensorflow")
 script, sys.argv = sys.argv[1], sys.argv[1:]
 runpy.run_path(script, run_name="__main__")
 """
