@@ -1,7 +1,10 @@
-"""Export the model's forward as portable XLA artifacts (one per point bucket, CPU and CUDA), weights saved once.
+"""Export the model's forward (and, with --train_points, its training step) as portable XLA artifacts (one per
+point bucket, batch size and precision; CPU and CUDA), weights saved once.
 
 python tools/export_xla.py --config C [--checkpoint M] --points 32000,100000 --out DIR [--precisions float32,tf32]
-Without --checkpoint the weights are the model's random initialisation (enough for latency). Needs the `xla` extra
+    [--train_points 177000 --train_batch_sizes 1,8 --train_precisions tf32,bfloat16] [--reference]
+Without --checkpoint the weights are the model's random initialisation (enough for latency). --reference also saves
+TensorFlow's results on fixed inputs, which the runner compares with the device's. Needs the `xla` extra
 (`pip install .[xla]`); run the result where only JAX is installed with `python tools/run_xla.py DIR`.
 """
 import _common
@@ -17,13 +20,21 @@ def main():
     p.add_argument("--precisions", default="float32", help=f"comma-separated, of {', '.join(xla_artifact.PRECISIONS)}")
     p.add_argument("--platforms", default=",".join(PLATFORMS))
     p.add_argument("--batch_size", type=int, default=1)
+    p.add_argument("--train_points", default="", help="cloud sizes of training-step artifacts (default: none)")
+    p.add_argument("--train_batch_sizes", default="1", help="batch sizes of the training-step artifacts")
+    p.add_argument("--train_precisions", default=None, help="default: --precisions")
+    p.add_argument("--reference", action="store_true", help="save TensorFlow's results for the runner to compare")
     p.add_argument("--out", required=True)
     args = p.parse_args()
     cfg = _common.load(args)
-    try:
-        points = [int(v) for v in args.points.split(",")]
-    except ValueError:
-        p.error(f"--points must be comma-separated integers, got {args.points!r}")
+    def integers(flag, text):
+        try:
+            return [int(v) for v in text.split(",") if v]
+        except ValueError:
+            p.error(f"--{flag} must be comma-separated integers, got {text!r}")
+    points = integers("points", args.points)
+    train_points = integers("train_points", args.train_points)
+    train_batch_sizes = integers("train_batch_sizes", args.train_batch_sizes)
     if args.checkpoint:
         from ff3d_tf.inference.predictor import restore_model
         model = restore_model(cfg, args.checkpoint)
@@ -32,10 +43,13 @@ def main():
         model = build_model(cfg)
     try:
         manifest = export_forward(cfg, model, points, args.out, args.precisions.split(","), args.platforms.split(","),
-                                  args.batch_size, weights_source=args.checkpoint or "random initialisation")
+                                  args.batch_size, weights_source=args.checkpoint or "random initialisation",
+                                  train_points=train_points, train_batch_sizes=train_batch_sizes,
+                                  train_precisions=args.train_precisions and args.train_precisions.split(","),
+                                  reference=args.reference)
     except ValueError as e:
         p.error(str(e))
-    print(f"wrote {len(manifest['artifacts'])} artifacts and {xla_artifact.WEIGHTS_NAME} to {args.out}")
+    print(f"wrote {len(manifest['artifacts'])} forward and {len(manifest['train_artifacts'])} training-step artifacts and {xla_artifact.WEIGHTS_NAME} to {args.out}")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,9 @@
-"""Run and time exported forward artifacts with JAX alone (no TensorFlow): python tools/run_xla.py DIR [--out J]
+"""Run and time exported artifacts with JAX alone (no TensorFlow): python tools/run_xla.py DIR [--out J]
 
 Loads DIR (written by tools/export_xla.py), compiles each artifact for the default JAX device (GPU if JAX has one),
 runs it on random clouds of its size and prints the median latency of --runs passes after --warmup, in a table beside
-the paper's P100 figures; --out writes the same as JSON. Imports numpy, JAX and the TensorFlow-free
+the paper's P100 figures; then the training steps (--train_runs steps each), and, when DIR has TensorFlow's reference
+results, how far the device's are from them; --out writes the same as JSON. Imports numpy, JAX and the TensorFlow-free
 ff3d_tf.inference.xla_artifact only.
 """
 import argparse
@@ -22,6 +23,7 @@ def main():
     p.add_argument("--warmup", type=int, default=3)
     p.add_argument("--precisions", default="", help="only these (comma-separated); default all in the manifest")
     p.add_argument("--points", default="", help="only these cloud sizes (comma-separated); default all")
+    p.add_argument("--train_runs", type=int, default=None, help="timed training steps per artifact (default --runs)")
     p.add_argument("--budget_s", type=float, default=None, help="start no artifact after this many seconds")
     p.add_argument("--out", default=None, help="JSON file of the results")
     args = p.parse_args()
@@ -39,10 +41,10 @@ def main():
     try:
         result = xla_artifact.run_export(args.export_dir, args.runs, args.warmup,
                                          [v for v in args.precisions.split(",") if v], points, args.budget_s,
-                                         on_row=save)
+                                         on_row=save, train_runs=args.train_runs)
     except xla_artifact.ExportFormatError as e:
         sys.exit(f"export error: {e}")
-    if not result["latency"] and not result["skipped"]:
+    if not result["latency"] and not result["train_step"] and not result["skipped"]:
         sys.exit(f"no artifact in {args.export_dir} matches --precisions {args.precisions!r} --points {args.points!r}")
     result["table"] = xla_artifact.latency_table(result)
     print(result["table"], flush=True)

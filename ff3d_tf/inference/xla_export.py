@@ -1,4 +1,5 @@
-"""The model's forward as a portable XLA program: one `jax.export` artifact per point bucket, weights saved once.
+"""The model as portable XLA programs: its forward (one `jax.export` artifact per point bucket and precision) and,
+optionally, its training step (forward, loss, backward, Adam), weights saved once.
 
 TensorFlow compiles the forward with XLA (`jit_compile=True`); this module takes that program before any
 optimisation, with the weights as plain arguments, and serialises it so that a process without TensorFlow (JAX/XLA
@@ -10,6 +11,10 @@ only, e.g. on a GPU machine) compiles and runs it: `ff3d_tf.inference.xla_artifa
   2. jaxlib converts the HLO to StableHLO; a JAX primitive whose lowering inlines that module makes it a JAX
      function, and `jax.export` lowers it for the platforms asked (CPU and CUDA, on a machine without a GPU) and
      serialises it with StableHLO's versioned portable format.
+
+The training step is stateless: it takes the weights, the BatchNorm statistics, Adam's slots and iteration count and
+a labelled batch, and returns their new values with the loss and the gradients' global norm (`train_step_fn`): a
+JAX process keeps that state on its device and times steps with TensorFlow absent (`xla_artifact.CompiledTrainStep`).
 
 TF32: TensorFlow writes its TF32 setting into the program (convolution/matmul precision HIGHEST when disabled,
 DEFAULT when enabled), so each precision is traced with the setting it names (see `xla_artifact.PRECISIONS`).
@@ -30,8 +35,11 @@ from ff3d_tf.data.pairs import bucket_size
 from ff3d_tf.inference import xla_artifact
 from ff3d_tf.model import build_model
 from ff3d_tf.model.fastflow3d import INPUT_KEYS
+from ff3d_tf.training.losses import batch_flow_loss
+from ff3d_tf.training.trainer import learning_rate_schedule, make_optimizer
 
 OUTPUT_KEYS = ("flow_mps", "point_valid")
+TRAIN_LABEL_KEYS = xla_artifact.TRAIN_LABEL_KEYS
 PLATFORMS = ("cpu", "cuda")
 
 
@@ -42,6 +50,12 @@ def input_specs(batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
               "point_mask_t0": ([b, p], tf.bool), "points_xyz_tm1_in_t0": ([b, p, 3], tf.float32),
               "point_features_tm1": ([b, p, 2], tf.float32), "point_mask_tm1": ([b, p], tf.bool)}
     return [tf.TensorSpec(*shapes[k], name=k) for k in INPUT_KEYS]
+
+
+def label_specs(batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
+    """The training step's labels, in `TRAIN_LABEL_KEYS` order: flow_mps_t0 [B,P,3], class_id_t0 [B,P] int32."""
+    return [tf.TensorSpec([batch_size, padded_points, 3], tf.float32, name="flow_mps_t0"),
+            tf.TensorSpec([batch_size, padded_points], tf.int32, name="class_id_t0")]
 
 
 def model_weights(model) -> list:
@@ -77,6 +91,74 @@ def forward_hlo(model, batch_size: int, padded_points: int, tf32: bool = False) 
     with _tensor_float_32(tf32):
         # A fresh tf.function per call: the TF32 setting is read when the function is converted to HLO.
         return tf.function(forward, jit_compile=True).experimental_get_compiler_ir(*specs)(stage="hlo_serialized")
+
+
+def train_step_fn(cfg: ExperimentConfig, model, batch_size: int):
+    """The Trainer's step (`ff3d_tf.training.trainer`) as a function of tensors only, for one device's batch:
+
+      (weights..., bn_statistics..., adam_m..., adam_v..., iterations (int32: JAX without x64), six inputs, flow_mps_t0, class_id_t0)
+        -> (new weights..., new bn_statistics..., new adam_m..., new adam_v..., new iterations, loss, grad_norm)
+
+    weights = `model.trainable_variables` order, bn_statistics = `model.non_trainable_variables`; adam_m / adam_v one
+    per weight. Same loss (`batch_flow_loss`, the batch being the whole global batch), optional global-norm clipping
+    and non-finite skip (nothing changes, iterations included) as the Trainer. The update is Keras 3's Adam
+    (`keras.optimizers.Adam.update_step`: m += (g - m)(1 - b1), v += (g^2 - v)(1 - b2),
+    w -= m * lr sqrt(1 - b2^t) / (1 - b1^t) / (sqrt(v) + eps), t = iterations + 1), written out because Keras'
+    `stateless_apply` is unavailable on the TensorFlow backend; the tests check it against the optimizer itself.
+    """
+    num_weights, num_stats = len(model.trainable_variables), len(model.non_trainable_variables)
+    optimizer = make_optimizer(cfg)
+    beta_1, beta_2, epsilon = optimizer.beta_1, optimizer.beta_2, optimizer.epsilon
+    schedule = learning_rate_schedule(cfg)
+    clip_norm = cfg.train.grad_clip_norm
+
+    def step(*flat):
+        weights = list(flat[:num_weights])
+        stats = list(flat[num_weights:num_weights + num_stats])
+        m = list(flat[num_weights + num_stats:2 * num_weights + num_stats])
+        v = list(flat[2 * num_weights + num_stats:3 * num_weights + num_stats])
+        iterations = flat[3 * num_weights + num_stats]
+        batch = dict(zip(INPUT_KEYS + TRAIN_LABEL_KEYS, flat[3 * num_weights + num_stats + 1:]))
+        batch["point_mask_t0"] = tf.cast(batch["point_mask_t0"], tf.bool)
+        with tf.GradientTape() as tape:
+            tape.watch(weights)
+            outputs, new_stats = model.stateless_call(weights, stats, {k: batch[k] for k in INPUT_KEYS},
+                                                      training=True)
+            loss = batch_flow_loss(batch, outputs, cfg.train.background_weight, batch_size)
+        grads = tape.gradient(loss, weights)
+        grad_norm = tf.linalg.global_norm(grads)
+        if clip_norm is not None:
+            grads, _ = tf.clip_by_global_norm(grads, clip_norm, use_norm=grad_norm)
+        lr = tf.cast(schedule(iterations) if callable(schedule) else schedule, tf.float32)
+        t = tf.cast(iterations + 1, tf.float32)
+        alpha = lr * tf.sqrt(1.0 - tf.pow(beta_2, t)) / (1.0 - tf.pow(beta_1, t))
+        new_m = [mi + (g - mi) * (1.0 - beta_1) for mi, g in zip(m, grads)]
+        new_v = [vi + (tf.square(g) - vi) * (1.0 - beta_2) for vi, g in zip(v, grads)]
+        new_weights = [w - mi * alpha / (tf.sqrt(vi) + epsilon) for w, mi, vi in zip(weights, new_m, new_v)]
+        finite = tf.math.is_finite(loss) & tf.math.is_finite(grad_norm)
+
+        def keep_if_finite(new, old):
+            return [tf.where(finite, a, b) for a, b in zip(new, old)]
+        return (*keep_if_finite(new_weights, weights), *keep_if_finite(new_stats, stats), *keep_if_finite(new_m, m),
+                *keep_if_finite(new_v, v), tf.where(finite, iterations + 1, iterations), loss, grad_norm)
+
+    return step
+
+
+def train_step_specs(model, batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
+    """Argument specs of `train_step_fn`'s step for one bucket."""
+    weights = model.trainable_variables
+    state = [tf.TensorSpec(v.shape, v.dtype) for v in weights + model.non_trainable_variables + weights + weights]
+    return (state + [tf.TensorSpec([], tf.int32, name="iterations")] + input_specs(batch_size, padded_points)
+            + label_specs(batch_size, padded_points))
+
+
+def train_step_hlo(cfg: ExperimentConfig, model, batch_size: int, padded_points: int, tf32: bool = False) -> bytes:
+    """Serialized pre-optimisation HLO of `train_step_fn` for one bucket (arguments and results as documented there)."""
+    specs = train_step_specs(model, batch_size, padded_points)
+    with _tensor_float_32(tf32):
+        return tf.function(train_step_fn(cfg, model, batch_size), jit_compile=True).experimental_get_compiler_ir(
+            *specs)(stage="hlo_serialized")
 
 
 def _stablehlo_avals(stablehlo: bytes):
@@ -150,19 +232,59 @@ def _tracing_model(cfg: ExperimentConfig, precision: str, model):
     return other
 
 
+def _write_artifact(out_dir: str, name: str, hlo: bytes, platforms, log) -> int:
+    blob = hlo_to_exported(hlo, platforms).serialize()
+    with open(os.path.join(out_dir, name), "wb") as f:
+        f.write(blob)
+    log(f"{name}: {len(blob) / 1e3:.0f} kB")
+    return len(blob)
+
+
+def _reference(cfg, model, manifest: dict, rng: np.random.Generator) -> dict:
+    """Inputs and TensorFlow's results for the first float32 forward and training-step artifacts (CPU, XLA), for the
+    runner to compare against what the exported programs compute on its device (`xla_artifact.REFERENCE_NAME`)."""
+    arrays = {}
+    forward = next((e for e in manifest["artifacts"] if e["precision"] == "float32"), None)
+    if forward is not None:
+        inputs = xla_artifact.random_inputs(manifest, forward, rng)
+        out = tf.function(lambda x: model(x, training=False), jit_compile=True)(dict(zip(INPUT_KEYS, inputs)))
+        arrays.update({f"forward/{k}": a for k, a in zip(INPUT_KEYS, inputs)})
+        arrays.update({f"forward/out/{k}": out[k].numpy() for k in OUTPUT_KEYS})
+        arrays["forward/padded_points"] = np.int64(forward["padded_points"])
+    train = next((e for e in manifest["train_artifacts"] if e["precision"] == "float32"), None)
+    if train is not None:
+        b, p = train["batch_size"], train["padded_points"]
+        batch = xla_artifact.random_inputs(manifest, train, rng) + xla_artifact.random_labels(train, rng)
+        state = xla_artifact.initial_train_state([v.numpy() for v in model_weights(model)], manifest)
+        with _tensor_float_32(False):
+            results = tf.function(train_step_fn(cfg, model, b), jit_compile=True)(*state, *batch)
+        arrays.update({f"train/{k}": a for k, a in zip(INPUT_KEYS + TRAIN_LABEL_KEYS, batch)})
+        arrays["train/out/loss"], arrays["train/out/grad_norm"] = results[-2].numpy(), results[-1].numpy()
+        arrays["train/batch_size"], arrays["train/padded_points"] = np.int64(b), np.int64(p)
+    return arrays
+
+
 def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir: str,
                    precisions: Sequence[str] = ("float32",), platforms: Sequence[str] = PLATFORMS,
-                   batch_size: int = 1, weights_source: str = "random initialisation", log=print) -> dict:
-    """Writes `out_dir` (layout in `xla_artifact`): the weights of `model`, one artifact per (bucket, precision).
+                   batch_size: int = 1, weights_source: str = "random initialisation", log=print,
+                   train_points: Sequence[int] = (), train_batch_sizes: Sequence[int] = (1,),
+                   train_precisions: Sequence[str] | None = None, reference: bool = False) -> dict:
+    """Writes `out_dir` (layout in `xla_artifact`): the weights of `model`, one forward artifact per (bucket,
+    precision) and one training-step artifact per (train bucket, train batch size, train precision).
 
-    `points` are cloud sizes; each is padded to its bucket (`data.point_bucket_base`), as the input pipeline does.
-    Returns the manifest (also written as manifest.json).
+    `points` / `train_points` are cloud sizes; each is padded to its bucket (`data.point_bucket_base`), as the input
+    pipeline does. `train_precisions` defaults to `precisions`. `reference`: also write TensorFlow's results for the
+    first float32 artifacts of each kind (`xla_artifact.REFERENCE_NAME`). Returns the manifest (also written as
+    manifest.json).
     """
-    for p in precisions:
+    train_precisions = tuple(precisions if train_precisions is None else train_precisions)
+    for p in (*precisions, *train_precisions):
         if p not in xla_artifact.PRECISIONS:
             raise ValueError(f"precision {p!r} unknown; one of {xla_artifact.PRECISIONS}")
-    if not points or min(points) < 1:
-        raise ValueError(f"points must be positive cloud sizes, got {list(points)}")
+    if not points or min(points) < 1 or (train_points and min(train_points) < 1):
+        raise ValueError(f"points must be positive cloud sizes, got {list(points)} and {list(train_points)}")
+    if train_points and (not train_batch_sizes or min(train_batch_sizes) < 1):
+        raise ValueError(f"train batch sizes must be positive, got {list(train_batch_sizes)}")
     os.makedirs(out_dir, exist_ok=True)
     import jax
     weights = model_weights(model)
@@ -176,9 +298,10 @@ def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir:
         "grid": {"num_pillars_x": g.num_pillars_x, "num_pillars_y": g.num_pillars_y, "x_range_m": list(g.x_range_m),
                  "y_range_m": list(g.y_range_m), "z_range_m": list(g.z_range_m)},
         "params": int(model.count_params()),
-        "input_keys": list(INPUT_KEYS), "output_keys": list(OUTPUT_KEYS),
+        "input_keys": list(INPUT_KEYS), "output_keys": list(OUTPUT_KEYS), "train_label_keys": list(TRAIN_LABEL_KEYS),
         "weights": [{"path": v.path, "shape": list(v.shape), "dtype": str(v.dtype)} for v in weights],
-        "artifacts": [],
+        "num_trainable": len(model.trainable_variables),
+        "artifacts": [], "train_artifacts": [],
     }
     written: dict[str, int] = {}
     for precision in precisions:
@@ -187,14 +310,24 @@ def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir:
             padded = bucket_size(n, cfg.data.point_bucket_base)
             name = xla_artifact.artifact_name(padded, precision)
             if name not in written:
-                hlo = forward_hlo(tracer, batch_size, padded, tf32=precision == "tf32")
-                blob = hlo_to_exported(hlo, platforms).serialize()
-                with open(os.path.join(out_dir, name), "wb") as f:
-                    f.write(blob)
-                written[name] = len(blob)
-                log(f"{name}: {len(blob) / 1e3:.0f} kB")
+                written[name] = _write_artifact(out_dir, name, forward_hlo(tracer, batch_size, padded,
+                                                                           tf32=precision == "tf32"), platforms, log)
             manifest["artifacts"].append({"points": int(n), "padded_points": padded, "batch_size": batch_size,
                                           "precision": precision, "file": name, "bytes": written[name]})
+    for precision in train_precisions if train_points else ():
+        tracer = _tracing_model(cfg, precision, model)
+        for n in train_points:
+            padded = bucket_size(n, cfg.data.point_bucket_base)
+            for b in train_batch_sizes:
+                name = xla_artifact.train_artifact_name(b, padded, precision)
+                if name not in written:
+                    hlo = train_step_hlo(cfg, tracer, b, padded, tf32=precision == "tf32")
+                    written[name] = _write_artifact(out_dir, name, hlo, platforms, log)
+                manifest["train_artifacts"].append({"points": int(n), "padded_points": padded, "batch_size": int(b),
+                                                    "precision": precision, "file": name, "bytes": written[name]})
+    if reference:
+        np.savez(os.path.join(out_dir, xla_artifact.REFERENCE_NAME),
+                 **_reference(cfg, model, manifest, np.random.default_rng(0)))
     with open(os.path.join(out_dir, xla_artifact.MANIFEST_NAME), "w") as f:
         json.dump(manifest, f, indent=1)
     return manifest

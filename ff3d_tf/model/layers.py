@@ -286,7 +286,9 @@ class UpsampleSkip(keras.layers.Layer):
         self.depth, self.bottleneck_depth = int(depth), int(bottleneck_depth)
         conv = dict(use_bias=False, padding="same", kernel_initializer="glorot_uniform")
         self.u1 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U1", **conv)
-        self.u2 = keras.layers.UpSampling2D(2, interpolation="bilinear", name="U2")
+        # U2 in float32 under mixed precision: TensorFlow's XLA lowering of the bilinear resize's gradient
+        # (ResizeBilinearGrad) returns float32 for bfloat16 inputs, which XLA rejects in a bfloat16 training step.
+        self.u2 = keras.layers.UpSampling2D(2, interpolation="bilinear", name="U2", dtype="float32")
         self.u3 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U3", **conv)
         self.u5 = keras.layers.Conv2D(self.depth, 3, name="U5", **conv)
         self.u6 = keras.layers.Conv2D(self.depth, 3, name="U6", **conv)
@@ -300,7 +302,8 @@ class UpsampleSkip(keras.layers.Layer):
 
     def call(self, inputs):
         alpha, beta = inputs
-        u4 = tf.concat([self.u2(self.u1(alpha)), self.u3(beta)], -1)
+        u1 = self.u1(alpha)
+        u4 = tf.concat([tf.cast(self.u2(tf.cast(u1, tf.float32)), u1.dtype), self.u3(beta)], -1)
         return self.u6(self.u5(u4))
 
     def get_config(self):

@@ -24,3 +24,15 @@ def per_sample_flow_loss(flow_true_mps, flow_pred_mps, class_id, point_valid, ba
     l2 = tf.sqrt(sq + 1e-12)  # eps keeps the gradient finite at a perfect prediction
     labelled = tf.reduce_sum(tf.cast(w > 0, tf.float32), -1)
     return tf.reduce_sum(w * l2, -1) / tf.maximum(labelled, 1.0)
+
+
+def batch_flow_loss(batch, outputs, background_weight: float, global_batch_size: int):
+    """One replica's training loss: `per_sample_flow_loss` over the points that are real (`point_mask_t0`) and valid
+    for the model, summed over the batch and divided by the global batch (`tf.nn.compute_average_loss`).
+
+    batch: flow_mps_t0 [B,N,3], class_id_t0 [B,N], point_mask_t0 [B,N]; outputs: the model's flow_mps, point_valid.
+    """
+    valid = outputs["point_valid"] & batch["point_mask_t0"]
+    per_sample = per_sample_flow_loss(batch["flow_mps_t0"], outputs["flow_mps"], batch["class_id_t0"], valid,
+                                      background_weight)
+    return tf.nn.compute_average_loss(per_sample, global_batch_size=global_batch_size)

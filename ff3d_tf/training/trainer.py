@@ -22,7 +22,7 @@ import tensorflow as tf
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
 from ff3d_tf.training.checkpoints import restore_newest_intact
-from ff3d_tf.training.losses import per_sample_flow_loss
+from ff3d_tf.training.losses import batch_flow_loss
 from ff3d_tf.training.metrics import SceneFlowMetrics
 from ff3d_tf.inference.predictor import compiled_forward, model_inputs
 from ff3d_tf.model import build_model
@@ -150,10 +150,7 @@ class Trainer:
         cfg = self.cfg
         with tf.GradientTape() as tape:
             out = self.model(model_inputs(batch), training=True)
-            valid = out["point_valid"] & batch["point_mask_t0"]
-            per_sample = per_sample_flow_loss(batch["flow_mps_t0"], out["flow_mps"], batch["class_id_t0"], valid,
-                                              cfg.train.background_weight)
-            loss = tf.nn.compute_average_loss(per_sample, global_batch_size=cfg.train.global_batch_size)
+            loss = batch_flow_loss(batch, out, cfg.train.background_weight, cfg.train.global_batch_size)
         grads = tape.gradient(loss, self.model.trainable_variables)
         return loss, grads
 

@@ -16,8 +16,11 @@ from ff3d_tf.inference import xla_artifact  # noqa: E402
 from ff3d_tf.inference.xla_export import export_forward, model_weights  # noqa: E402
 from ff3d_tf.model import build_model  # noqa: E402
 from ff3d_tf.model.fastflow3d import INPUT_KEYS  # noqa: E402
+from ff3d_tf.training.losses import batch_flow_loss  # noqa: E402
+from ff3d_tf.training.trainer import make_optimizer  # noqa: E402
 
 POINTS = (700, 1500)  # tiny config buckets (base 1024): 1024 and 1536
+TRAIN_POINTS, TRAIN_BATCH = (900,), 2  # one training-step artifact: 2 x 1024 points
 
 # Run as `python -c`: makes `import tensorflow` (and Keras, which would import it) fail, then runs the given script.
 NO_TF_SHIM = """
@@ -73,7 +76,9 @@ def exported_tiny(tiny_config, tmp_path_factory):
             centre = 1.0 if "variance" in v.path or "gamma" in v.path else 0.0
             v.assign(rng.uniform(centre - 0.2, centre + 0.2, v.shape).astype(np.float32))
     out_dir = str(tmp_path_factory.mktemp("xla"))
-    manifest = export_forward(tiny_config, model, POINTS, out_dir, precisions=("float32", "tf32"), log=lambda _: None)
+    manifest = export_forward(tiny_config, model, POINTS, out_dir, precisions=("float32", "tf32"), log=lambda _: None,
+                              train_points=TRAIN_POINTS, train_batch_sizes=(TRAIN_BATCH,),
+                              train_precisions=("float32",), reference=True)
     return model, out_dir, manifest
 
 
@@ -135,7 +140,7 @@ def test_runner_without_tensorflow_writes_latency_json(exported_tiny, tmp_path):
     _, out_dir, _ = exported_tiny
     out_json = tmp_path / "latency.json"
     stdout = _run_without_tf(os.path.join(ROOT, "tools", "run_xla.py"), out_dir, "--runs", "2", "--warmup", "1",
-                             "--points", "700", "--precisions", "float32", "--out", str(out_json))
+                             "--points", f"700,{TRAIN_POINTS[0]}", "--precisions", "float32", "--out", str(out_json))
     result = json.loads(out_json.read_text())
     assert result["platform"] == "cpu" and result["num_weights"] == len(json.load(
         open(os.path.join(out_dir, xla_artifact.MANIFEST_NAME)))["weights"])
@@ -144,6 +149,53 @@ def test_runner_without_tensorflow_writes_latency_json(exported_tiny, tmp_path):
     for r in rows.values():
         assert r["runs"] == 2 and 0 < r["min_ms"] <= min(r["median_ms"], r["mean_ms"]) and r["median_host_ms"] > 0
     assert "paper P100 ms" in stdout and "| 700 | float32 |" in stdout
+    # The reference: TensorFlow's results at export time, here recomputed by the runner without TensorFlow.
+    assert rows[(700, "float32")]["reference"]["max_abs_flow_diff_mps"] < 1e-4
+    assert rows[(700, "float32")]["reference"]["valid_mismatches"] == 0
+    (train,) = result["train_step"]
+    assert (train["batch_size"], train["points"], train["runs"]) == (TRAIN_BATCH, TRAIN_POINTS[0], 2)
+    assert train["ms_per_pair"] == pytest.approx(train["median_ms"] / TRAIN_BATCH)
+    assert train["reference"]["loss_rel_diff"] < 1e-4 and train["reference"]["grad_norm_rel_diff"] < 1e-3
+    assert f"| {TRAIN_BATCH} x {TRAIN_POINTS[0]} | float32 |" in stdout
+
+
+def test_train_step_equals_keras_adam_training(exported_tiny, tiny_config):
+    """Two exported training steps (JAX) against two steps of the model trained by TensorFlow with the Trainer's loss
+    and optimizer (Keras' Adam): loss, weights, Adam-updated weights and BatchNorm statistics agree."""
+    model, out_dir, manifest = exported_tiny
+    (entry,) = manifest["train_artifacts"]
+    assert (entry["batch_size"], entry["padded_points"], entry["precision"]) == (TRAIN_BATCH, 1024, "float32")
+    weights = xla_artifact.load_weights(out_dir, manifest)
+    step = xla_artifact.CompiledTrainStep(xla_artifact.load_train_step(out_dir, entry, manifest),
+                                          xla_artifact.initial_train_state(weights, manifest))
+    rng = np.random.default_rng(4)
+    batch = xla_artifact.random_inputs(manifest, entry, rng) + xla_artifact.random_labels(entry, rng)
+    jax_losses = [float(step(step.on_device(batch))[0]) for _ in range(2)]
+
+    reference = build_model(tiny_config)
+    reference.set_weights(model.get_weights())
+    optimizer = make_optimizer(tiny_config)
+    tf_batch = dict(zip(INPUT_KEYS + xla_artifact.TRAIN_LABEL_KEYS, batch))
+    tf_losses = []
+    for _ in range(2):
+        with tf.GradientTape() as tape:
+            out = reference({k: tf_batch[k] for k in INPUT_KEYS}, training=True)
+            loss = batch_flow_loss(tf_batch, out, tiny_config.train.background_weight, TRAIN_BATCH)
+        optimizer.apply_gradients(zip(tape.gradient(loss, reference.trainable_variables),
+                                      reference.trainable_variables))
+        tf_losses.append(float(loss))
+    np.testing.assert_allclose(jax_losses, tf_losses, rtol=1e-5)
+    assert jax_losses[1] < jax_losses[0]  # lr 1e-3: the second step already sees a lower loss
+    num_weights = len(model_weights(model))
+    got = [np.asarray(x) for x in step.state[:num_weights]]
+    for var, value in zip(model_weights(reference), got):
+        # Adam moves each weight by about lr = 1e-3 per step: a wrong update (sign, bias correction, epsilon) is off by
+        # ~1e-3; 1e-5 allows for a gradient element near 0 whose rounding Adam amplifies. BatchNorm statistics (up
+        # to ~12 here): float32 rounding.
+        np.testing.assert_allclose(value, var.numpy(), rtol=1e-6, atol=1e-5, err_msg=var.path)
+    moved = [np.abs(v - b).max() for v, b in zip(got, weights)]
+    assert max(moved) > 1e-3
+    assert int(np.asarray(step.state[-1])) == 2  # iterations
 
 
 def test_precision_is_written_into_the_program(exported_tiny):
@@ -151,7 +203,7 @@ def test_precision_is_written_into_the_program(exported_tiny):
     default precision (not printed)."""
     from jax import export
     _, out_dir, manifest = exported_tiny
-    for entry in manifest["artifacts"]:
+    for entry in manifest["artifacts"] + manifest["train_artifacts"]:
         with open(os.path.join(out_dir, entry["file"]), "rb") as f:
             text = export.deserialize(bytearray(f.read())).mlir_module()
         assert "stablehlo.convolution" in text
