@@ -24,8 +24,8 @@ from ff3d_tf.model import layers as L
 
 _LOG = logging.getLogger(__name__)
 
-# Points per chunk of the point encoder / scatter loop: bounds the [chunk, 64] feature memory at any cloud size.
-POINT_CHUNK = 1 << 18
+# Points per chunk of the point encoder loop: bounds the [chunk, 64] feature memory at any cloud size.
+POINT_CHUNK = 1 << 16
 
 INPUT_KEYS = schema.MODEL_INPUT_KEYS
 
@@ -127,22 +127,29 @@ class FastFlow3D(keras.Model):
         return self.decode_points(self.dense_stages(encoded["bev_features"], training), encoded)
 
     def encode_points(self, inputs, training=False):
-        """Rows A and B on both clouds (shared weights, one set of BN statistics over both).
+        """Rows A and B on both clouds (shared weights, one set of BN statistics over both), and the part of the head
+        that needs no grid.
 
-        Returns a dict: bev_features [2B,H,W,C] (t0 samples first, then t-1), and for the head: point_features_t0
-        [B,N0,C], encoding_t0 [B,N0,8], pillar_ids_t0 [B,N0], point_valid_t0 [B,N0].
+        Rows Y and Z are linear with nothing between them, so the head is one linear map of (cell embedding, point
+        feature, encoding) (`UngridHead.composed_with`); each t0 point's own share of the flow is taken while its
+        features are computed, chunk by chunk, so no [N0, C] feature array is kept for the head.
+
+        Returns a dict: bev_features [2B,H,W,C] (t0 samples first, then t-1), and for the head: point_flow_t0
+        [B,N0,3] (m/s, float32; the flow without the grid part and the bias), pillar_ids_t0 [B,N0], point_valid_t0
+        [B,N0].
         """
         enc_t0, ids_t0, valid_t0 = self.pillarize(inputs["points_xyz_t0"], inputs["point_features_t0"],
                                                   tf.cast(inputs["point_mask_t0"], tf.bool))
         enc_tm1, ids_tm1, valid_tm1 = self.pillarize(inputs["points_xyz_tm1_in_t0"], inputs["point_features_tm1"],
                                                      tf.cast(inputs["point_mask_tm1"], tf.bool))
-        # The t-1 cloud is encoded and scattered chunk by chunk (no [N1, C] array); the t0 features are kept for
-        # row X.
-        (grid_t0, grid_tm1), (features_t0, _) = self.point_encoder(
-            [enc_t0, enc_tm1], [valid_t0, valid_tm1], [ids_t0, ids_tm1], keep_point_features=(True, False),
+        _, k_point, k_encoding, _ = self.head_y.composed_with(self.head_z)
+        head_point_kernel = tf.concat([k_point, k_encoding], 0)  # [C + 8, 3]: (point feature, encoding) -> flow
+        (grid_t0, grid_tm1), (point_flow_t0, _) = self.point_encoder(
+            [enc_t0, enc_tm1], [valid_t0, valid_tm1], [ids_t0, ids_tm1], point_projections=(head_point_kernel, None),
             training=training)
-        return {"bev_features": tf.concat([grid_t0, grid_tm1], 0), "point_features_t0": features_t0,
-                "encoding_t0": enc_t0, "pillar_ids_t0": ids_t0, "point_valid_t0": valid_t0}
+        return {"bev_features": tf.concat([grid_t0, grid_tm1], 0),
+                "point_flow_t0": tf.cast(point_flow_t0, tf.float32), "pillar_ids_t0": ids_t0,
+                "point_valid_t0": valid_t0}
 
     def dense_stages(self, bev_features, training=False):
         """Rows C-V: bev_features [2B,H,W,C] (t0 samples first) -> grid flow embedding [B,H,W,C_V]."""
@@ -164,11 +171,13 @@ class FastFlow3D(keras.Model):
 
     def decode_points(self, grid_flow_embedding, encoded):
         """Rows W-Z: flow of the t0 points. `encoded` is `encode_points`'s dict; returns flow_mps [B,N0,3] (0 where
-        invalid) and point_valid [B,N0]."""
+        invalid) and point_valid [B,N0]. The head's grid part is applied on the grid (3 values per cell); each point
+        takes its cell's (row W) and adds its own part (`point_flow_t0`) and the bias."""
         valid = encoded["point_valid_t0"]
-        y = self.head_y([grid_flow_embedding, encoded["point_features_t0"], encoded["encoding_t0"],
-                         encoded["pillar_ids_t0"]])
-        flow = tf.cast(self.head_z(y), tf.float32)
+        k_grid, _, _, bias = self.head_y.composed_with(self.head_z)
+        cell_flow = L.dense_last_axis(grid_flow_embedding, tf.cast(k_grid, grid_flow_embedding.dtype))
+        flow = (tf.cast(self.head_y.ungrid(cell_flow, encoded["pillar_ids_t0"]), tf.float32) +
+                encoded["point_flow_t0"] + bias)
         flow = tf.where(valid[..., None], flow, tf.zeros_like(flow))
         return {"flow_mps": flow, "point_valid": valid}
 

@@ -12,7 +12,7 @@ import tensorflow as tf
 _PKG = "ff3d_tf"
 
 
-def _dense_last_axis(x, kernel):
+def dense_last_axis(x, kernel):
     """x [..., C] @ kernel [C, U] as one 2-D matmul (no tensordot transposes: inside the point-chunk loop those
     need compile-time shapes under XLA)."""
     kernel = tf.cast(kernel, x.dtype)
@@ -58,8 +58,9 @@ class Pillarize(keras.layers.Layer):
         cx = self.x_range_m[0] + (tf.cast(col, points_xyz.dtype) + 0.5) * self._size_x
         cy = self.y_range_m[0] + (tf.cast(row, points_xyz.dtype) + 0.5) * self._size_y
         cz = tf.fill(tf.shape(z), tf.constant(0.5 * (self.z_range_m[0] + self.z_range_m[1]), points_xyz.dtype))
-        encoding = tf.concat([tf.stack([cx, cy, cz, x - cx, y - cy, z - cz], -1), point_features], -1)
-        encoding = tf.where(valid[..., None], encoding, tf.zeros_like(encoding))
+        channels = [cx, cy, cz, x - cx, y - cy, z - cz, point_features[..., 0], point_features[..., 1]]
+        # Masked channel by channel, then stacked: XLA builds the encoding in one pass.
+        encoding = tf.stack([tf.where(valid, c, tf.zeros_like(c)) for c in channels], -1)
         batch = tf.shape(points_xyz)[0]
         cells = self.num_pillars_x * self.num_pillars_y
         sample = tf.range(batch, dtype=tf.int32)[:, None]
@@ -96,7 +97,15 @@ class MaskedBatchNorm(keras.layers.Layer):
 
     def call(self, inputs, mask, training=False):
         single = not isinstance(inputs, (list, tuple))
-        inputs, mask = ([inputs], [mask]) if single else (list(inputs), list(mask))
+        inputs = [inputs] if single else list(inputs)
+        mean, scale, beta = self.normalizer(inputs, [mask] if single else list(mask), training)
+        out = [(x - mean) * scale + beta for x in inputs]
+        return out[0] if single else out
+
+    def normalizer(self, inputs, mask, training=False):
+        """(mean, scale, beta) [C] each in the inputs' dtype, BN(x) = (x - mean) * scale + beta: the statistics of the
+        valid points of all `inputs` (a list, with its masks) when training (the moving ones are updated), else the
+        moving ones. For callers that normalise chunk by chunk."""
         dtype = inputs[0].dtype
         if training:
             ws = [tf.cast(m, dtype)[..., None] for m in mask]
@@ -112,11 +121,104 @@ class MaskedBatchNorm(keras.layers.Layer):
             mean = tf.cast(self.moving_mean, dtype)
             var = tf.cast(self.moving_variance, dtype)
         scale = tf.cast(self.gamma, dtype) * tf.math.rsqrt(var + self.epsilon)
-        out = [(x - mean) * scale + tf.cast(self.beta, dtype) for x in inputs]
-        return out[0] if single else out
+        return mean, scale, tf.cast(self.beta, dtype)
 
     def get_config(self):
         return {**super().get_config(), "momentum": self.momentum, "epsilon": self.epsilon}
+
+
+@tf.custom_gradient
+def narrow_matmul(x, kernel):
+    """x [P,K] @ kernel [K,C] for a small K (the 8-D encoding), as K products of a column and a row: XLA fuses them
+    with the ops around them instead of writing the product out for a matrix multiply. The gradient is the usual
+    pair of matrix products."""
+    y = tf.add_n([x[:, j:j + 1] * kernel[j] for j in range(x.shape[-1])])
+
+    def grad(dy):
+        return tf.matmul(dy, kernel, transpose_b=True), tf.matmul(x, dy, transpose_a=True)
+
+    return y, grad
+
+
+def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segments, chunk_size):
+    """Segment sums of per-point values that `fn` computes `chunk_size` points at a time, and optionally per-point
+    rows beside them; with a gradient that recomputes each chunk.
+
+    fn(points [P',D], point_valid [P'], weights) -> (values [P',C], rows [P',U] or None) for a chunk of P' points.
+    points: [P,D] float (the flattened points); point_valid: [P] bool. Padded to whole chunks with zeros (False).
+    weights: tensors that every chunk uses (e.g. kernels); their gradients are summed over the chunks.
+    segment_ids: [P] int32, -1 for points in no segment.
+    Returns (sums [num_segments, C], rows [P, U] or None).
+
+    One chunk's intermediates exist at a time, forward and backward: the loop has a gradient of its own because the
+    automatic one of a tf.while_loop keeps every chunk's intermediates in TensorLists, which may not leave an XLA
+    program (the point stages' forward and backward are separate programs in compile mode "hybrid"). A static count
+    of one chunk runs without a loop; more always run in a tf.while_loop, where XLA adds into the sums in place
+    (unrolled, it reassociates the sums into extra grids).
+    """
+    total, static_total = tf.shape(segment_ids)[0], segment_ids.shape[0]
+    if static_total is not None:
+        chunk = max(min(chunk_size, static_total), 1)
+        num_chunks = max(-(-static_total // chunk), 1)
+    else:
+        chunk = tf.maximum(tf.minimum(chunk_size, total), 1)
+        num_chunks = tf.maximum((total + chunk - 1) // chunk, 1)
+
+    def to_chunks(t, fill):  # [P, ...] -> [K, chunk, ...]
+        t = tf.pad(t, [[0, num_chunks * chunk - total]] + [[0, 0]] * (len(t.shape) - 1), constant_values=fill)
+        return tf.reshape(t, tf.concat([[num_chunks, chunk], tf.shape(t)[1:]], 0))
+
+    ids, valid = to_chunks(segment_ids, -1), to_chunks(point_valid, False)
+
+    def loop(body, state):  # state = body(i, state) for each chunk i
+        if isinstance(num_chunks, int) and num_chunks == 1:
+            return body(0, state)
+        return tf.while_loop(lambda i, _: i < num_chunks, lambda i, s: (i + 1, body(i, s)), (tf.constant(0), state),
+                             maximum_iterations=num_chunks)[1]
+
+    @tf.custom_gradient
+    def run(points, *weights):  # points [K, chunk, D]
+        weights = list(weights)
+
+        def chunk_outputs(points, valid, ids):  # one chunk's segment sums and rows
+            values, rows = fn(points, valid, weights)
+            return tf.math.unsorted_segment_sum(values, ids, num_segments), rows
+
+        def forward(i, state):
+            sums, rows = chunk_outputs(points[i], valid[i], ids[i])
+            return [state[0] + sums] + ([] if rows is None else [tf.tensor_scatter_nd_update(state[1], [[i]],
+                                                                                             rows[None])])
+
+        # An empty chunk gives the outputs' shapes: zero sums to add the chunks to, and the rows' width.
+        sums, rows = chunk_outputs(points[0][:0], valid[0][:0], ids[0][:0])
+        rows = [] if rows is None else [tf.zeros([num_chunks, chunk, rows.shape[-1]], rows.dtype)]
+        state = loop(forward, [sums] + rows)
+
+        def grad(d_sums, d_rows=None):
+            def backward(i, state):
+                d_points, d_weights = state
+                chunk_points = points[i]
+                with tf.GradientTape() as tape:
+                    tape.watch([chunk_points] + weights)
+                    values, rows = fn(chunk_points, valid[i], weights)
+                # The segment sum's gradient, without recomputing the sum (its size may be no compile-time constant
+                # in a separate backward program).
+                gathered = tf.gather(d_sums, tf.maximum(ids[i], 0))
+                d_values = tf.where(ids[i][:, None] >= 0, gathered, tf.zeros_like(gathered))
+                d_chunk, *d_weights_chunk = tape.gradient(
+                    [values] + ([] if rows is None else [rows]), [chunk_points] + weights,
+                    output_gradients=[d_values] + ([] if rows is None else [d_rows[i]]),
+                    unconnected_gradients=tf.UnconnectedGradients.ZERO)
+                return (tf.tensor_scatter_nd_update(d_points, [[i]], d_chunk[None]),
+                        [d + x for d, x in zip(d_weights, d_weights_chunk)])
+
+            d_points, d_weights = loop(backward, (tf.zeros_like(points), [tf.zeros_like(w) for w in weights]))
+            return [d_points] + d_weights
+
+        return state, grad
+
+    sums, *rows = run(to_chunks(points, tf.zeros([], points.dtype)), *weights)
+    return sums, (tf.reshape(rows[0], [-1, rows[0].shape[-1]])[:total] if rows else None)
 
 
 @keras.saving.register_keras_serializable(package=_PKG)
@@ -128,19 +230,22 @@ class PointEncoder(keras.layers.Layer):
     BN normalises the 8-D encoding, whose channels differ in scale by two orders of magnitude (pillar centres up to
     85 m, offsets < 0.2 m, intensity ~1); a bias would be redundant with BN's beta pushed through the kernel.
 
+    The points are normalised, encoded and scattered `chunk_size` at a time (`chunked_segment_sum`): no [N, C]
+    feature array exists at any cloud size. The head takes a point's feature (and encoding) only through a linear
+    map, so the encoder applies that map chunk by chunk (`point_projections`) instead of keeping the features.
+
     Args:
       units: C, the point feature width.
       num_pillars_x, num_pillars_y: grid W, H of row B's output.
-      chunk_size: points (over the flattened batch) encoded and scattered at a time for clouds whose per-point
-        features are not kept: memory for one [chunk, C] feature block at any cloud size.
+      chunk_size: points (over the flattened batch) encoded and scattered at a time.
     Call:
-      encodings [B,N,8] (`Pillarize`), point_valid [B,N] bool, pillar_ids [B,N] int32 (dummy id B*H*W for invalid
-        points); or lists of them, one per cloud: the BN statistics are then joint over all clouds (both frames
+      encodings [B,N,8] (`Pillarize`), point_valid [B,N] bool, pillar_ids [B,N] int32 (ids of invalid points are
+        ignored); or lists of them, one per cloud: the BN statistics are then joint over all clouds (both frames
         share row A).
-      keep_point_features: bool, or one per cloud: also return that cloud's per-point features (row X's input);
-        the other clouds are encoded and scattered chunk by chunk without keeping them.
+      point_projections: None, a kernel [C + 8, U], or (with lists) one of them (or None) per cloud: also return
+        concat(point feature, encoding) @ kernel for that cloud's points, [B,N,U].
     Returns:
-      (bev_features [B,H,W,C], point_features [B,N,C] or None), or (list, list) when called with lists.
+      (bev_features [B,H,W,C], projected point features [B,N,U] or None), or (list, list) when called with lists.
     """
 
     def __init__(self, units=64, num_pillars_x=512, num_pillars_y=512, chunk_size=1 << 18, **kwargs):
@@ -158,90 +263,47 @@ class PointEncoder(keras.layers.Layer):
         self.norm.build(input_shape)
         self.dense.build(input_shape)
 
-    def call(self, encodings, point_valid, pillar_ids, keep_point_features=False, training=False):
+    def call(self, encodings, point_valid, pillar_ids, point_projections=None, training=False):
         single = not isinstance(encodings, (list, tuple))
         if single:
             encodings, point_valid, pillar_ids = [encodings], [point_valid], [pillar_ids]
-        keep = ([bool(keep_point_features)] * len(encodings) if isinstance(keep_point_features, bool)
-                else [bool(k) for k in keep_point_features])
-        normed = self.norm(list(encodings), list(point_valid), training=training)  # joint statistics
-        grids, features = [], []
-        for x, valid, ids, k in zip(normed, point_valid, pillar_ids, keep):
-            grid, feat = self._encode_and_scatter(x, valid, ids, k)
+            point_projections = [point_projections]
+        elif point_projections is None:
+            point_projections = [None] * len(encodings)
+        encodings = [tf.cast(e, self.compute_dtype) for e in encodings]
+        # Joint statistics; the normalisation itself is applied chunk by chunk.
+        normalizer = self.norm.normalizer(encodings, list(point_valid), training=training)
+        grids, projected = [], []
+        for encoding, valid, ids, projection in zip(encodings, point_valid, pillar_ids, point_projections):
+            grid, rows = self._encode_and_scatter(encoding, valid, ids, normalizer, projection)
             grids.append(grid)
-            features.append(feat)
-        return (grids[0], features[0]) if single else (grids, features)
+            projected.append(rows)
+        return (grids[0], projected[0]) if single else (grids, projected)
 
-    def _features(self, normed, point_valid):
-        """Linear + ReLU of normalised encodings [..,8] -> [..,C]; zero for invalid points."""
-        h = tf.nn.relu(_dense_last_axis(normed, self.dense.kernel))
-        return tf.where(point_valid[..., None], h, tf.zeros_like(h))
+    def _encode_and_scatter(self, encoding, point_valid, pillar_ids, normalizer, projection):
+        """One cloud: grid [B,H,W,C] (row B: segment sums over flat pillar ids) and, with a projection kernel
+        [C + 8, U], the projected features [B,N,U]."""
+        batch, n, dims = tf.shape(encoding)[0], tf.shape(encoding)[1], encoding.shape[-1]
+        cells = batch * self.num_pillars_y * self.num_pillars_x
 
-    def _encode_and_scatter(self, normed, point_valid, pillar_ids, keep):
-        """One cloud: grid [B,H,W,C] (row B, segment sum over flat pillar ids, dummy segment last) and the features
-        [B,N,C] when `keep`."""
-        batch = tf.shape(normed)[0]
-        num_segments = batch * self.num_pillars_x * self.num_pillars_y + 1
-        if keep:
-            features = self._features(normed, point_valid)  # [B,N,C]
-            grid = tf.math.unsorted_segment_sum(features, pillar_ids, num_segments)
-        else:
-            features, grid = None, self._chunked_scatter(normed, point_valid, pillar_ids, num_segments)
-        return tf.reshape(grid[:-1], [batch, self.num_pillars_y, self.num_pillars_x, self.units]), features
+        def encode(encoding, valid, weights):  # a chunk: encoding [P,8], valid [P]
+            mean, scale, beta, kernel = weights[:4]
+            features = tf.nn.relu(narrow_matmul((encoding - mean) * scale + beta, kernel))  # [P,C]
+            features = tf.where(valid[:, None], features, tf.zeros_like(features))
+            if projection is None:
+                return features, None
+            # The encoding's share as a sum of 8 products, not a matrix product: XLA fuses it with the
+            # encoding's computation instead of materialising a copy of the encoding for a dot.
+            by_encoding = tf.reduce_sum(encoding[:, :, None] * weights[4][self.units:], 1)
+            return features, tf.matmul(features, weights[4][:self.units]) + by_encoding
 
-    def _chunked_scatter(self, normed, point_valid, pillar_ids, num_segments):
-        """Segment sums [num_segments, C] of the features, `chunk_size` points at a time. The B*N points are
-        flattened (ids are global over the batch), padded to whole chunks and taken chunk by chunk: no transposes,
-        and no [B*N, C] feature array."""
-        batch, n = tf.shape(normed)[0], tf.shape(normed)[1]
-        total = batch * n
-        if None not in normed.shape[:2]:
-            total_static = normed.shape[0] * normed.shape[1]
-            chunk = max(min(self.chunk_size, total_static), 1)
-            num_chunks = max(-(-total_static // chunk), 1)
-        else:
-            chunk = tf.maximum(tf.minimum(self.chunk_size, total), 1)
-            num_chunks = tf.maximum((total + chunk - 1) // chunk, 1)
-        pad = num_chunks * chunk - total
-
-        def chunks(t, fill):  # [B,N,...] -> [K,chunk,...]
-            flat = tf.reshape(t, tf.concat([[total], tf.shape(t)[2:]], 0))
-            flat = tf.pad(flat, [[0, pad]] + [[0, 0]] * (len(t.shape) - 2), constant_values=fill)
-            return tf.reshape(flat, tf.concat([[num_chunks, chunk], tf.shape(t)[2:]], 0))
-
-        normed_c = chunks(normed, 0.0)  # [K,chunk,8]
-        valid_c = chunks(point_valid, False)
-        ids_c = chunks(pillar_ids, num_segments - 1)
-
-        # A gradient of its own (recomputing each chunk's features) instead of the loop's automatic one: the
-        # automatic gradient keeps every chunk's intermediates in TensorLists, which may not leave an XLA program
-        # (the point stage's forward and backward are separate programs in compile mode "hybrid").
-        @tf.custom_gradient
-        def scatter(normed_c, kernel):
-            def forward(i, grid):
-                feat = tf.where(valid_c[i][:, None], tf.nn.relu(tf.matmul(normed_c[i], kernel)), 0.0)  # [chunk,C]
-                return [i + 1, grid + tf.math.unsorted_segment_sum(feat, ids_c[i], num_segments)]
-
-            grid = tf.zeros([num_segments, self.units], normed_c.dtype)
-            _, grid = tf.while_loop(lambda i, _: i < num_chunks, forward, [tf.constant(0), grid],
-                                    maximum_iterations=num_chunks)
-
-            def grad(d_grid):  # [num_segments, C] -> d normed_c [K,chunk,8], d kernel [8,C]
-                def backward(i, d_normed, d_kernel):
-                    pre = tf.matmul(normed_c[i], kernel)
-                    d_pre = tf.where(valid_c[i][:, None] & (pre > 0), tf.gather(d_grid, ids_c[i]), 0.0)
-                    d_kernel = d_kernel + tf.matmul(normed_c[i], d_pre, transpose_a=True)
-                    d_chunk = tf.matmul(d_pre, kernel, transpose_b=True)
-                    return [i + 1, tf.tensor_scatter_nd_update(d_normed, [[i]], d_chunk[None]), d_kernel]
-
-                _, d_normed, d_kernel = tf.while_loop(
-                    lambda i, *_: i < num_chunks, backward,
-                    [tf.constant(0), tf.zeros_like(normed_c), tf.zeros_like(kernel)], maximum_iterations=num_chunks)
-                return d_normed, d_kernel
-
-            return grid, grad
-
-        return scatter(normed_c, tf.cast(self.dense.kernel, normed.dtype))
+        weights = [*normalizer, self.dense.kernel] + ([] if projection is None else [projection])
+        grid, rows = chunked_segment_sum(
+            encode, tf.reshape(encoding, [-1, dims]), tf.reshape(point_valid, [-1]),
+            [tf.cast(w, encoding.dtype) for w in weights], tf.reshape(tf.where(point_valid, pillar_ids, -1), [-1]),
+            cells, self.chunk_size)
+        grid = tf.reshape(grid, [batch, self.num_pillars_y, self.num_pillars_x, self.units])
+        return grid, (None if rows is None else tf.reshape(rows, [batch, n, -1]))
 
     def get_config(self):
         return {**super().get_config(), "units": self.units, "num_pillars_x": self.num_pillars_x,
@@ -321,7 +383,9 @@ class UngridHead(keras.layers.Layer):
     the 5,233,571 total.
 
     concat([w, a, e]) @ K = w @ K_w + a @ K_a + e @ K_e, so the grid part is projected to 32 channels on the grid first
-    and 32 (not 64) values are gathered per point: the same function with far less per-point memory traffic.
+    and 32 (not 64) values are gathered per point: the same function with far less per-point memory traffic. The
+    model goes further (`composed_with`): rows Y and Z are one linear map, whose grid part leaves 3 values per cell
+    to gather and whose point part the point encoder applies to each chunk of features.
 
     Call: [bev [B,H,W,Cg], point_features [B,N,Cp] (row A), encoding [B,N,8] (`Pillarize`), pillar_ids [B,N]].
     Returns: [B,N,U]; rows of invalid points are arbitrary (the caller masks them).
@@ -343,17 +407,30 @@ class UngridHead(keras.layers.Layer):
     def call(self, inputs):
         """inputs: bev [B,H,W,Cg], point_features [B,N,Cp], encoding [B,N,8], pillar_ids [B,N] -> [B,N,U]."""
         bev, point_features, encoding, pillar_ids = inputs
-        kernel = tf.cast(self.kernel, bev.dtype)
-        k_grid = kernel[: self.grid_channels]
-        k_point = kernel[self.grid_channels: self.grid_channels + self.point_channels]
-        k_enc = kernel[self.grid_channels + self.point_channels:]
-        point_features = tf.cast(point_features, bev.dtype)
-        point_term = (_dense_last_axis(point_features, k_point) + _dense_last_axis(tf.cast(encoding, bev.dtype), k_enc)
-                      + tf.cast(self.bias, bev.dtype))  # a @ K_a + e @ K_e + bias, [B,N,U]
-        projected = tf.reshape(tf.einsum("bhwc,cu->bhwu", bev, k_grid), [-1, self.units])  # [B*H*W, U]
-        cells = tf.shape(projected)[0]
-        safe_ids = tf.minimum(pillar_ids, cells - 1)  # dummy ids gather any cell; masked by the caller
-        return tf.gather(projected, safe_ids) + point_term  # [B,N,U]
+        k_grid, k_point, k_enc = self.split_kernel(tf.cast(self.kernel, bev.dtype))
+        point_term = (dense_last_axis(tf.cast(point_features, bev.dtype), k_point) +
+                      dense_last_axis(tf.cast(encoding, bev.dtype), k_enc) + tf.cast(self.bias, bev.dtype))
+        return self.ungrid(dense_last_axis(bev, k_grid), pillar_ids) + point_term  # [B,N,U]
+
+    def split_kernel(self, kernel):
+        """A kernel [Cg + Cp + 8, U'] as the parts that multiply the grid, point feature and encoding inputs."""
+        g, p = self.grid_channels, self.point_channels
+        return kernel[:g], kernel[g:g + p], kernel[g + p:]
+
+    @staticmethod
+    def ungrid(grid, pillar_ids):
+        """Row W: grid [B,H,W,U'] -> each point's cell [B,N,U'] (pillar ids flat over the batch; points in no
+        pillar take any cell: the caller masks them)."""
+        cells = tf.reshape(grid, [-1, grid.shape[-1]])
+        return tf.gather(cells, tf.minimum(pillar_ids, tf.shape(cells)[0] - 1))
+
+    def composed_with(self, output_layer):
+        """This row followed by the linear `output_layer` (row Z, nothing between them) as one linear map:
+        Z(Y(x)) = x @ (K_Y K_Z) + (b_Y K_Z + b_Z). Returns (grid, point feature, encoding) kernel parts [.., 3] and
+        the bias [3], in the variables' dtype."""
+        kernel = tf.matmul(self.kernel, output_layer.kernel)
+        bias = tf.linalg.matvec(output_layer.kernel, self.bias, transpose_a=True) + output_layer.bias
+        return (*self.split_kernel(kernel), bias)
 
     def get_config(self):
         return {**super().get_config(), "units": self.units}

@@ -1,4 +1,6 @@
 """FastFlow3D: paper parameter counts, shapes, serialisation, pillarization by hand, equivariance, masking, XLA."""
+import re
+
 import keras
 import numpy as np
 import pytest
@@ -127,3 +129,41 @@ def test_mixed_precision_close_to_float32(tiny_config):
     np.testing.assert_array_equal(a["point_valid"].numpy(), b["point_valid"].numpy())
     rel = np.linalg.norm(b["flow_mps"] - a["flow_mps"]) / np.linalg.norm(a["flow_mps"])
     assert rel < 0.05, rel
+
+
+def test_flow_equals_the_table_rows_called_one_by_one(tiny_config):
+    """The model evaluates rows A-Z in its own order (head rows Y, Z composed into one linear map, each point's own
+    share of the flow taken while its features are computed); the result equals the layers of the table called one
+    after the other through their public calls, with the [N, C] point features built whole."""
+    model = build_model(tiny_config)
+    model.head_z.kernel.assign(model.head_z.kernel * 0.1)  # flows of a real size (~1 m/s), see test_xla_matches_eager
+    inputs = _inputs(np.random.default_rng(8), 2, 300, 280)
+    enc, ids, valid = model.pillarize(inputs["points_xyz_t0"], inputs["point_features_t0"], inputs["point_mask_t0"])
+    encoded = model.encode_points(inputs)
+    features = tf.nn.relu(model.point_encoder.dense(model.point_encoder.norm(enc, valid)))  # row A, inference BN
+    features = tf.where(valid[..., None], features, 0.0)
+    grid_flow_embedding = model.dense_stages(encoded["bev_features"])  # rows C-V
+    expected = model.head_z(model.head_y([grid_flow_embedding, features, enc, ids]))  # rows W-Z
+    v = valid.numpy()
+    assert v.sum() > 400
+    np.testing.assert_allclose(model(inputs)["flow_mps"].numpy()[v], expected.numpy()[v], atol=1e-5)
+
+
+def test_point_stages_hold_no_per_point_feature_array(tiny_config, monkeypatch):
+    """At several chunks per cloud, neither point stage has an [N, C] array (point features): memory per point stays
+    a few floats at any cloud size (at 1M points, no 256 MB feature array)."""
+    from ff3d_tf.model import fastflow3d
+    monkeypatch.setattr(fastflow3d, "POINT_CHUNK", 128)
+    model = build_model(tiny_config)
+    n, c = 1500, tiny_config.model.point_feature_dim  # n above the grid's 32 x 32 cells
+    inputs = _inputs(np.random.default_rng(9), 1, n, n)
+    encode = tf.function(lambda x: model.encode_points(x), jit_compile=True)
+    encoded = encode(inputs)
+    grid = model.dense_stages(encoded["bev_features"])
+    decode = tf.function(lambda g, e: model.decode_points(g, e), jit_compile=True)
+    hlo = (encode.experimental_get_compiler_ir(inputs)(stage="optimized_hlo") +
+           decode.experimental_get_compiler_ir(grid, encoded)(stage="optimized_hlo"))
+    per_point = re.compile(r"f32\[(?:1,)?(\d+),(\d+)\]")
+    wide = {m.group(0) for m in per_point.finditer(hlo) if int(m.group(1)) >= n and int(m.group(2)) == c}
+    assert not wide, wide
+    assert "f32[128,%d]" % c in hlo  # one chunk's features

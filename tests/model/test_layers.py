@@ -1,5 +1,6 @@
 """Every layer through the shared harness (config, eager == graph == XLA with gradients, mixed precision, masking),
 plus each layer's values against an independent NumPy reference."""
+import keras
 import numpy as np
 import pytest
 import tensorflow as tf
@@ -56,71 +57,90 @@ def test_masked_batch_norm_matches_numpy():
     np.testing.assert_allclose(out[v], expected[v], atol=1e-4)
 
 
-def _point_encoder_reference(encs, valids, ids, kernel, epsilon=1e-3):
-    """NumPy rows A, B: BN with joint statistics over the valid points of all clouds, ReLU(x @ K), pillar sums."""
+def _point_encoder_reference(encs, valids, ids, kernel, projections, epsilon=1e-3):
+    """NumPy rows A, B: BN with joint statistics over the valid points of all clouds, ReLU(x @ K), pillar sums, and
+    concat(feature, encoding) @ projection per point where a cloud has a projection."""
     joint = np.concatenate([e[v] for e, v in zip(encs, valids)])
     mean, var = joint.mean(0), joint.var(0)
-    grids, feats = [], []
-    for e, v, i in zip(encs, valids, ids):
+    grids, rows = [], []
+    for e, v, i, p in zip(encs, valids, ids, projections):
         f = np.maximum(((e - mean) / np.sqrt(var + epsilon)) @ kernel, 0) * v[..., None]
         grid = np.zeros((B * H * W + 1, kernel.shape[1]), np.float64)
         np.add.at(grid, i.reshape(-1), f.reshape(-1, kernel.shape[1]))
         grids.append(grid[:-1].reshape(B, H, W, -1))
-        feats.append(f)
-    return grids, feats
+        rows.append(None if p is None else np.concatenate([f, e], -1) @ p)
+    return grids, rows
 
 
-def _perturb_masked_t0_cloud(args):
-    """PointEncoder call args ([enc0, enc1], [valid0, valid1], ids): the first cloud's masked encodings -> garbage."""
-    (enc0, enc1), valids, ids = args
-    enc0, = _perturb_masked(0, 1)((enc0, valids[0]))[:1]
-    return [enc0, enc1], valids, ids
+PROJECTION = tf.constant(RNG.normal(0, 0.3, (5 + 8, 3)).astype(np.float32))  # [C + 8, 3]
 
 
 @pytest.mark.parametrize("chunk_size", [1 << 18, 7])  # one chunk; several chunks and a padded last one
 def test_point_encoder_matches_numpy(chunk_size):
     (e0, v0, i0), (e1, v1, i1) = _encodings(N, 1), _encodings(N - 9, 2)
-    layer, (grids, feats) = run_layer_test(
+
+    def perturb_masked_t0(args):  # the first cloud's masked encodings -> garbage
+        (enc0, enc1), valids, ids = args
+        return [_perturb_masked(0, 1)((enc0, valids[0]))[0], enc1], valids, ids
+
+    layer, (grids, rows) = run_layer_test(
         L.PointEncoder, dict(units=5, num_pillars_x=W, num_pillars_y=H, chunk_size=chunk_size),
-        ([e0, e1], [v0, v1], [i0, i1]), {"keep_point_features": (True, False), "training": True},
-        expected_output_shapes=([(B, H, W, 5), (B, H, W, 5)], [(B, N, 5), None]),
-        masking=(_perturb_masked_t0_cloud, lambda out: out[0]))  # grids: masked points add nothing
-    kernel = layer.dense.kernel.numpy()
-    ref_grids, ref_feats = _point_encoder_reference([e0.numpy(), e1.numpy()], [v0.numpy(), v1.numpy()],
-                                                    [i0.numpy(), i1.numpy()], kernel)
+        ([e0, e1], [v0, v1], [i0, i1]), {"point_projections": (PROJECTION, None), "training": True},
+        expected_output_shapes=([(B, H, W, 5), (B, H, W, 5)], [(B, N, 3), None]),
+        # masked points add nothing to the grids; their rows are arbitrary (the caller masks them)
+        masking=(perturb_masked_t0, lambda out: (out[0], out[1][0][np.asarray(v0)])))
+    ref_grids, ref_rows = _point_encoder_reference([e0.numpy(), e1.numpy()], [v0.numpy(), v1.numpy()],
+                                                   [i0.numpy(), i1.numpy()], layer.dense.kernel.numpy(),
+                                                   [PROJECTION.numpy(), None])
     np.testing.assert_allclose(grids[0], ref_grids[0], atol=1e-4)
     np.testing.assert_allclose(grids[1], ref_grids[1], atol=1e-4)
-    np.testing.assert_allclose(feats[0], ref_feats[0], atol=1e-5)
+    v = v0.numpy()
+    np.testing.assert_allclose(rows[0][v], ref_rows[0][v], atol=1e-4)
 
 
-def test_point_encoder_chunked_gradient_matches_autodiff():
-    """The chunk loop's own gradient equals automatic differentiation of the plain (unchunked) formula."""
+@pytest.mark.parametrize("compiled", ["eager", "xla", "graph_unknown_point_count"])
+def test_point_encoder_chunked_gradient_matches_autodiff(compiled):
+    """The chunk loop's own gradient equals automatic differentiation of the plain (unchunked) formula: grid and
+    projected rows, with respect to the encodings, BN, kernel and projection."""
     enc, valid, ids = _encodings(N, 3)
     layer = L.PointEncoder(units=5, num_pillars_x=W, num_pillars_y=H, chunk_size=6)
-    layer(enc, valid, ids, training=True)
+    layer(enc, valid, ids, point_projections=PROJECTION, training=True)
     upstream = tf.random.stateless_normal((B, H, W, 5), seed=[1, 2])
+    upstream_rows = tf.random.stateless_normal((B, N, 3), seed=[3, 4]) * tf.cast(valid, tf.float32)[..., None]
 
-    with tf.GradientTape() as tape:
-        tape.watch(enc)
-        grid, _ = layer(enc, valid, ids, training=True)
-        loss = tf.reduce_sum(grid * upstream)
-    d_enc, d_vars = tape.gradient(loss, [enc, layer.trainable_variables])
+    def chunked(enc, valid, ids, projection):
+        with tf.GradientTape() as tape:
+            tape.watch([enc, projection])
+            grid, rows = layer(enc, valid, ids, point_projections=projection, training=True)
+            loss = tf.reduce_sum(grid * upstream) + tf.reduce_sum(rows * upstream_rows)
+        return loss, tape.gradient(loss, [enc, projection] + layer.trainable_variables)
+
+    if compiled == "xla":
+        chunked = tf.function(chunked, jit_compile=True)
+    elif compiled == "graph_unknown_point_count":  # the loop's count known only at run time
+        chunked = tf.function(chunked, input_signature=[tf.TensorSpec([B, None, 8]), tf.TensorSpec([B, None], tf.bool),
+                                                        tf.TensorSpec([B, None], tf.int32), tf.TensorSpec([13, 3])])
+    loss, (d_enc, d_projection, *d_vars) = chunked(enc, valid, ids, PROJECTION)
 
     # Reference: the same function written directly with differentiable TF ops, no loop.
     gamma, beta, kernel = [tf.identity(v) for v in (layer.norm.gamma, layer.norm.beta, layer.dense.kernel)]
+    projection = tf.identity(PROJECTION)
     with tf.GradientTape() as tape:
-        tape.watch([enc, gamma, beta, kernel])
+        tape.watch([enc, gamma, beta, kernel, projection])
         w = tf.cast(valid, tf.float32)[..., None]
         mean = tf.reduce_sum(enc * w, [0, 1]) / tf.reduce_sum(w)
         var = tf.reduce_sum(tf.square(enc - mean) * w, [0, 1]) / tf.reduce_sum(w)
         normed = (enc - mean) * gamma / tf.sqrt(var + 1e-3) + beta
         feat = tf.nn.relu(tf.einsum("bnc,cu->bnu", normed, kernel)) * w
         ref_grid = tf.math.unsorted_segment_sum(feat, ids, B * H * W + 1)[:-1]
-        ref_loss = tf.reduce_sum(tf.reshape(ref_grid, [B, H, W, 5]) * upstream)
-    ref = tape.gradient(ref_loss, [enc, gamma, beta, kernel])
+        ref_rows = tf.einsum("bnc,cu->bnu", tf.concat([feat, enc], -1), projection)
+        ref_loss = (tf.reduce_sum(tf.reshape(ref_grid, [B, H, W, 5]) * upstream) +
+                    tf.reduce_sum(ref_rows * upstream_rows))
+    ref = tape.gradient(ref_loss, [enc, projection, gamma, beta, kernel])
     np.testing.assert_allclose(loss.numpy(), ref_loss.numpy(), rtol=1e-5)
     np.testing.assert_allclose(d_enc.numpy(), ref[0].numpy(), atol=1e-4)
-    for got, want in zip(d_vars, ref[1:]):  # gamma, beta, kernel in the layer's variable order
+    np.testing.assert_allclose(d_projection.numpy(), ref[1].numpy(), rtol=1e-4, atol=1e-4)
+    for got, want in zip(d_vars, ref[2:]):  # gamma, beta, kernel in the layer's variable order
         np.testing.assert_allclose(got.numpy(), want.numpy(), rtol=1e-4, atol=1e-4)
 
 
@@ -150,3 +170,18 @@ def test_ungrid_head_equals_concatenation_reference():
     expected = np.concatenate([ungrid, feats.numpy(), enc.numpy()], -1) @ kernel + bias  # X, Y
     v = valid.numpy()
     np.testing.assert_allclose(out[v], expected[v], atol=1e-4)
+
+
+def test_ungrid_head_composed_with_output_layer():
+    """Rows Y and Z called one after the other equal the composed map the model evaluates: the grid part projected
+    on the grid and gathered, plus the point feature and encoding parts, plus the composed bias."""
+    bev = tf.constant(RNG.normal(0, 1, (B, H, W, 6)).astype(np.float32))
+    feats = tf.constant(RNG.normal(0, 1, (B, N, 4)).astype(np.float32))
+    enc, valid, ids = _encodings(N, 5)
+    head, output = L.UngridHead(units=7), keras.layers.Dense(3, bias_initializer="random_normal")
+    expected = output(head([bev, feats, enc, ids]))
+    k_grid, k_point, k_enc, bias = head.composed_with(output)
+    got = (head.ungrid(L.dense_last_axis(bev, k_grid), ids) + L.dense_last_axis(feats, k_point) +
+           L.dense_last_axis(enc, k_enc) + bias)
+    v = valid.numpy()
+    np.testing.assert_allclose(got.numpy()[v], expected.numpy()[v], atol=1e-5)
