@@ -87,6 +87,7 @@ def test_point_encoder_matches_numpy(chunk_size):
         L.PointEncoder, dict(units=5, num_pillars_x=W, num_pillars_y=H, chunk_size=chunk_size),
         ([e0, e1], [v0, v1], [i0, i1]), {"point_projections": (PROJECTION, None), "training": True},
         expected_output_shapes=([(B, H, W, 5), (B, H, W, 5)], [(B, N, 3), None]),
+        float32_under_mixed=(0, 1),  # pillar sums accumulate in float32 under mixed precision
         # masked points add nothing to the grids; their rows are arbitrary (the caller masks them)
         masking=(perturb_masked_t0, lambda out: (out[0], out[1][0][np.asarray(v0)])))
     ref_grids, ref_rows = _point_encoder_reference([e0.numpy(), e1.numpy()], [v0.numpy(), v1.numpy()],
@@ -148,6 +149,31 @@ def test_conv_block():
     x = tf.constant(RNG.normal(0, 1, (B, 8, 8, 3)).astype(np.float32))
     run_layer_test(L.ConvBlock, dict(filters=4, strides=2), (x,), {"training": True},
                    expected_output_shapes=(B, 4, 4, 4))
+
+
+@pytest.mark.parametrize("training", [True, False])
+def test_conv_block_batch_norm_matches_numpy(training):
+    """The fused BatchNorm computes Keras' BatchNormalization: batch statistics (biased variance) in training, moving
+    statistics updated with momentum 0.99, moving statistics in inference; epsilon 1e-3."""
+    x = tf.constant(RNG.normal(0, 1, (B, 8, 8, 3)).astype(np.float32))
+    block = L.ConvBlock(4, strides=1)
+    block.build(x.shape)
+    gamma, beta = RNG.uniform(0.5, 1.5, 4).astype(np.float32), RNG.normal(0, 1, 4).astype(np.float32)
+    mean0, var0 = RNG.normal(0, 1, 4).astype(np.float32), RNG.uniform(0.5, 2, 4).astype(np.float32)
+    for var, value in ((block.bn.gamma, gamma), (block.bn.beta, beta), (block.bn.moving_mean, mean0),
+                       (block.bn.moving_variance, var0)):
+        var.assign(value)
+    conv = block.conv(x).numpy()  # [B,8,8,4]
+    out = block(x, training=training).numpy()
+    if training:
+        mean, variance = conv.mean((0, 1, 2)), conv.var((0, 1, 2))  # biased, as Keras
+        np.testing.assert_allclose(block.bn.moving_mean.numpy(), 0.99 * mean0 + 0.01 * mean, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(block.bn.moving_variance.numpy(), 0.99 * var0 + 0.01 * variance, rtol=1e-6)
+    else:
+        mean, variance = mean0, var0
+        np.testing.assert_array_equal(block.bn.moving_mean.numpy(), mean0)
+    expected = np.maximum((conv - mean) / np.sqrt(variance + 1e-3) * gamma + beta, 0.0)
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)
 
 
 def test_upsample_skip():
