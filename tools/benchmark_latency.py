@@ -2,11 +2,11 @@
 for every compile mode side by side (paper Table 3). JSON out.
 
 python tools/benchmark_latency.py --config configs/fastflow3d_waymo.yaml --modes auto,xla,hybrid,none --out L.json
-Batch 1; warm-up (compilation) excluded; the modes are interleaved call by call (round robin), so load on a shared
-machine hits them alike: compare ratios within one run. Median and min of --runs calls; peak resident memory of each
+Batch 1; warm-up (compilation) excluded; every measured call (each mode at each point count, the conv floors, each
+mode's training step) takes its turn in one round robin, so load on a shared machine hits them alike: compare ratios
+within one run. Median and min of --runs calls; peak resident memory of each
 call (Linux VmHWM, reset before it, so start-up and compilation do not count); resident memory between calls.
-The conv floor (the dense stages alone on a ready grid, XLA and graph kernels) runs in the round robin of the
-smallest point count. The training step is forward + backward + Adam (the Trainer's own step) at --train_points,
+The conv floor is the dense stages alone on a ready grid, XLA and graph kernels. The training step is forward + backward + Adam (the Trainer's own step) at --train_points,
 batch 1. Memory: `rss_before_gb` is the resident set before a call after returning freed heap to the OS
 (malloc_trim), `rss_after_gb` right after a call without it (what the process holds between calls).
 """
@@ -115,7 +115,6 @@ def main():
     p.add_argument("--modes", default=None, help="comma-separated model.compile modes (default: the config's)")
     p.add_argument("--runs", type=int, default=5)
     p.add_argument("--train_points", type=int, default=32000, help="0 = no training-step benchmark")
-    p.add_argument("--train_runs", type=int, default=3)
     p.add_argument("--skip_conv_floor", action="store_true",
                    help="no conv floor (its buffers stay resident and count in the later calls' memory)")
     p.add_argument("--out", default="latency.json")
@@ -139,40 +138,41 @@ def main():
                "modes": {m: {"resolved": r, "description": compile_lib.describe(r)} for m, r in modes.items()},
                "mixed_precision": cfg.model.mixed_precision, "params": first.count_params(),
                "framework_baseline_rss_gb": framework_baseline_gb, "latency": {}}
-    # Conv floor of each backend: the encoder (both frames stacked) + decoder on an already-built grid, timed in the
-    # same round robin as the smallest point count (so that the ratio to it sees the same load).
+    # Conv floor of each backend: the encoder (both frames stacked) + decoder on an already-built grid.
     h, w, c = cfg.grid.num_pillars_y, cfg.grid.num_pillars_x, cfg.model.point_feature_dim
     bev = tf.constant(rng.uniform(0, 1, (2, h, w, c)).astype(np.float32))
     dense = {"xla": tf.function(lambda x: first.dense_stages(x), jit_compile=True),
              "graph": tf.function(lambda x: first.dense_stages(x))}
-    floor_fns = {f"conv_floor/{k}": (lambda f=f: f(bev)) for k, f in dense.items()}
-    for i, n in enumerate(sorted(int(v) for v in args.points.split(","))):
-        inputs, padded = _example(rng, n, cfg)
-        outputs = {m: f(inputs)["flow_mps"].numpy() for m, f in forwards.items()}
-        r = _interleaved({**{m: (lambda f=f: f(inputs)) for m, f in forwards.items()},
-                          **(floor_fns if i == 0 and not args.skip_conv_floor else {})}, args.runs)
-        if i == 0 and not args.skip_conv_floor:
-            results["conv_floor"] = {k.split("/")[1]: r.pop(k) for k in floor_fns}
-            print("conv floor: " + "; ".join(f"{k} {v['median_ms']:.0f} ms"
-                                             for k, v in results["conv_floor"].items()), flush=True)
-        for m in r:
-            r[m]["padded_points"] = padded
-            r[m]["max_abs_flow_diff_vs_" + requested[0]] = float(np.abs(outputs[m] - outputs[requested[0]]).max())
+    calls = {} if args.skip_conv_floor else {f"conv_floor/{k}": (lambda f=f: f(bev)) for k, f in dense.items()}
+    points = sorted(int(v) for v in args.points.split(","))
+    padded_points, outputs = {}, {}
+    for n in points:
+        inputs, padded_points[n] = _example(rng, n, cfg)
+        outputs[n] = {m: f(inputs)["flow_mps"].numpy() for m, f in forwards.items()}
+        calls.update({f"{n}/{m}": (lambda f=f, x=inputs: f(x)) for m, f in forwards.items()})
+    if args.train_points:
+        example, train_padded = _example(rng, args.train_points, cfg, labels=True)
+        calls.update({f"train/{m}": fn for m, fn in _train_steppers(cfg, modes, example).items()})
+    timed = _interleaved(calls, args.runs)
+    if not args.skip_conv_floor:
+        results["conv_floor"] = {k: timed[f"conv_floor/{k}"] for k in dense}
+        print("conv floor: " + "; ".join(f"{k} {v['median_ms']:.0f} ms" for k, v in results["conv_floor"].items()),
+              flush=True)
+    for n in points:
+        r = {m: {**timed[f"{n}/{m}"], "padded_points": padded_points[n], f"max_abs_flow_diff_vs_{requested[0]}":
+                 float(np.abs(outputs[n][m] - outputs[n][requested[0]]).max())} for m in modes}
         results["latency"][str(n)] = r
         print(f"{n} points: " + "; ".join(f"{m} {v['median_ms']:.0f} ms (peak RSS {v['peak_rss_gb']:.2f} GB)"
                                           for m, v in r.items()), flush=True)
     floor = min(v["median_ms"] for v in results["conv_floor"].values()) if "conv_floor" in results else float("nan")
     lat = results["latency"]
-    keys = sorted(lat, key=int)
-    results["ratios"] = {m: {"max_over_min_points": lat[keys[-1]][m]["median_ms"] / lat[keys[0]][m]["median_ms"],
-                             "min_points_over_fastest_conv_floor": lat[keys[0]][m]["median_ms"] / floor}
+    results["ratios"] = {m: {"max_over_min_points": lat[str(points[-1])][m]["median_ms"] /
+                             lat[str(points[0])][m]["median_ms"],
+                             "min_points_over_fastest_conv_floor": lat[str(points[0])][m]["median_ms"] / floor}
                          for m in modes}
     if args.train_points:
-        example, padded = _example(rng, args.train_points, cfg, labels=True)
-        steppers = _train_steppers(cfg, modes, example)
-        r = _interleaved(steppers, args.train_runs, warmup=1)
+        r = {m: {**timed[f"train/{m}"], "padded_points": train_padded} for m in modes}
         for m in r:
-            r[m]["padded_points"] = padded
             r[m]["over_inference_same_points"] = (r[m]["median_ms"] / lat[str(args.train_points)][m]["median_ms"]
                                                   if str(args.train_points) in lat else None)
         results["train_step"] = r
