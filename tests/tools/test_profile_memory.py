@@ -1,0 +1,65 @@
+"""tools/profile_memory.py: variants isolated in their own environment, the /proc and glibc readings, the JSON."""
+import json
+import os
+import subprocess
+import sys
+
+from conftest import ROOT, TINY_OVERRIDES
+
+sys.path.append(os.path.join(ROOT, "tools"))  # appended: tools/ module names must not shadow others
+import profile_memory  # noqa: E402
+
+
+def test_each_variant_gets_its_own_settings_and_none_of_the_others():
+    base = {"PATH": "/bin", "MALLOC_ARENA_MAX": "8", "TF_ENABLE_ONEDNN_OPTS": "0",
+            "TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "1"}
+    env = profile_memory.child_environment("tf_bfc_pool", base)
+    assert env == {"PATH": "/bin", "TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "0"}  # the caller's knobs do not leak in
+    env = profile_memory.child_environment("bfc_arena_max_2", base)
+    assert env["MALLOC_ARENA_MAX"] == "2" and "TF_ENABLE_ONEDNN_OPTS" not in env
+    # every variant says which TensorFlow CPU allocator it runs with, whatever the caller's environment says
+    assert all("TF_ONEDNN_USE_SYSTEM_ALLOCATOR" in v["env"] for v in profile_memory.VARIANTS.values())
+
+
+def test_times_are_medians_over_rounds_memory_from_the_first():
+    def summary(ms, rss):
+        return {"train": {"rss_between_gb": rss, "median_ms": ms, "median_cpu_ms": 2 * ms, "median_sys_ms": 1.0,
+                          "median_minor_faults": 10}}
+    combined = profile_memory.combine_rounds([summary(300.0, 1.0), summary(100.0, 9.0), summary(200.0, 9.0)])
+    assert combined == {"train": {"rss_between_gb": 1.0, "median_ms": 200.0, "median_cpu_ms": 400.0,
+                                  "median_sys_ms": 1.0, "median_minor_faults": 10, "rounds": 3}}
+
+
+def test_readings_of_this_process():
+    info = profile_memory.mallinfo2()
+    assert info is not None and info["uordblks"] > 0 and info["hblks"] >= 0  # glibc >= 2.33
+    kinds = profile_memory.smaps_by_kind()
+    rss = profile_memory.proc_status("VmRSS")
+    assert abs(sum(kinds.values()) - rss) < 0.05 * rss + 0.01  # the kinds add up to the resident set
+    assert kinds["file_other"] > 0 and kinds.get("file_tensorflow", 0) > 0  # the interpreter; TF's .so (conftest)
+    rollup = profile_memory.smaps_rollup()
+    assert rollup["Rss"] > 0 and rollup["Anonymous"] > 0
+
+
+def test_tool_writes_every_variant_and_the_pool_shows(tmp_path):
+    # Inference of the tiny model at 200K points: point tensors of ~13 MB each. TensorFlow's BFC pool keeps them
+    # mapped between calls (and counts them); with the system allocator they are unmapped and nothing is counted.
+    out = tmp_path / "memory.json"
+    sets = [a for s in TINY_OVERRIDES for a in ("--set", s)]
+    run = subprocess.run([sys.executable, "tools/profile_memory.py", "--config", "", *sets, "--variants",
+                          "tf_bfc_pool,system_allocator", "--kinds", "infer", "--points", "200000", "--calls", "2",
+                          "--repeat", "2", "--repeat_variants", "system_allocator", "--note", "test run", "--out",
+                          str(out)], cwd=ROOT, capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    result = json.loads(out.read_text())
+    assert "Load average" in result["note"] and result["note"].endswith("test run")
+    assert set(result["variants"]) == {"tf_bfc_pool", "system_allocator"}
+    assert [len(result["variants"][k]["rounds"]) for k in ("tf_bfc_pool", "system_allocator")] == [1, 2]
+    bfc, system = (result["variants"][k]["summary"]["infer"] for k in ("tf_bfc_pool", "system_allocator"))
+    for s in (bfc, system):
+        assert s["rss_between_gb"] > 0 and s["peak_rss_gb"] >= s["rss_between_gb"] - 0.01 and s["median_ms"] > 0
+        assert s["smaps_anon_gb"] > 0 and s["smaps_file_gb"] > 0 and s["mallinfo2_gb"]["uordblks"] > 0
+        assert len(result["variants"]["tf_bfc_pool"]["infer"]["timed"]["calls"]) == 2
+    assert bfc["tf_allocator"]["peak_gb"] > 0.01 and system["tf_allocator"]["peak_gb"] == 0.0
+    assert bfc["mallinfo2_gb"]["hblkhd"] > system["mallinfo2_gb"]["hblkhd"] + 0.02  # the pool's mapped regions
