@@ -24,8 +24,7 @@ from ff3d_tf.model import layers as L
 
 _LOG = logging.getLogger(__name__)
 
-# Points per chunk of the point encoder loop: bounds the [chunk, 64] feature memory at any cloud size.
-POINT_CHUNK = 1 << 16
+POINT_CHUNK = L.POINT_CHUNK  # the model's point chunk (tests set a small one here)
 
 INPUT_KEYS = schema.MODEL_INPUT_KEYS
 
