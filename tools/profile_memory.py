@@ -135,15 +135,18 @@ def smaps_by_kind() -> dict:
 
 
 def smaps_rollup() -> dict:
-    out = {}
+    """/proc/self/smaps_rollup's main totals, GB; {} where the kernel has none (Linux < 4.14: the per-kind sums of
+    `smaps_by_kind` still stand)."""
     try:
         with open("/proc/self/smaps_rollup") as f:
-            for line in f:
-                parts = line.split()
-                if len(parts) == 3 and parts[2] == "kB":
-                    out[parts[0].rstrip(":")] = int(parts[1]) * 1024 / GB
+            lines = f.readlines()
     except OSError:
-        pass
+        return {}
+    out = {}
+    for line in lines:
+        parts = line.split()
+        if len(parts) == 3 and parts[2] == "kB":
+            out[parts[0].rstrip(":")] = int(parts[1]) * 1024 / GB
     return {k: out[k] for k in ("Rss", "Pss_Anon", "Pss_File", "Anonymous", "AnonHugePages") if k in out}
 
 
