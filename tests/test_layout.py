@@ -37,3 +37,136 @@ def test_av2_sample_is_in_tree_with_its_notice():
     log = os.path.join(ROOT, "data", "av2_sample_log")
     assert os.path.isfile(os.path.join(log, "NOTICE.md"))
     assert len(os.listdir(os.path.join(log, "sensors", "lidar"))) == 2
+
+
+# --- Floors: foundations at the bottom, three sibling pipelines above them, tools on top ---------------------------
+# A module of ff3d_tf imports only modules of its own floor or lower; the pipelines never import one another (each
+# stands on the foundations alone); nothing in ff3d_tf imports a tool, and no tool imports another tool (`_common`,
+# the tools' shared flag parsing, is not a tool). Every import counts, function-local ones included.
+FOUNDATION_RANKS = {  # within the foundation floor: a module imports ranks <= its own
+    "schema": 0, "internals": 0, "parallel": 0, "bench": 0, "geometry": 0,
+    "config": 1,
+    "data": 2, "model": 2, "metrics": 2, "viz": 2,
+    "checkpoints": 3,
+}
+PIPELINES = ("labels", "training", "inference", "fuzz")
+TOOL_HELPERS = ("_common",)
+
+
+def _imports(path: str, package: str) -> list[tuple[int, str]]:
+    """(line, absolute module name) of every import in the file, at any depth; `package` resolves relative ones."""
+    import ast
+    with open(path, encoding="utf-8") as f:
+        tree = ast.parse(f.read(), path)
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join(parts + ([node.module] if node.module else []))
+            found += [(node.lineno, f"{base}.{a.name}" if base else a.name) for a in node.names]
+    return found
+
+
+def _floor(module: str) -> tuple[str, str] | None:
+    """("foundation" | "pipeline" | "tool", the top-level part) of a first-party module name, None otherwise."""
+    parts = module.split(".")
+    if parts[0] == "tools" and len(parts) > 1:
+        return "tool", parts[1]
+    if parts[0] != "ff3d_tf":
+        return None
+    if len(parts) == 1:
+        return "foundation", ""
+    return ("pipeline", parts[1]) if parts[1] in PIPELINES else ("foundation", parts[1])
+
+
+def layering_violations(root: str) -> list[str]:
+    """Every import under `root`/ff3d_tf and `root`/tools that breaks the floors, as "file:line: a -> b (why)".
+
+    Tools run with tools/ on sys.path, so a bare `import benchmark_latency` in a tool is the tool tools.benchmark_latency.
+    """
+    tool_names = {n[:-3] for n in os.listdir(os.path.join(root, "tools")) if n.endswith(".py")}
+    out = []
+    for top in ("ff3d_tf", "tools"):
+        for dirpath, _, names in os.walk(os.path.join(root, top)):
+            for name in sorted(n for n in names if n.endswith(".py")):
+                path = os.path.join(dirpath, name)
+                rel = os.path.relpath(path, root)
+                module = rel[:-3].replace(os.sep, ".").removesuffix(".__init__")
+                package = module if name == "__init__.py" else module.rpartition(".")[0]
+                for line, target in _imports(path, package):
+                    if top == "tools" and target.split(".")[0] in tool_names:
+                        target = f"tools.{target}"
+                    if why := _why_not(module, target):
+                        out.append(f"{rel}:{line}: {why}")
+    return sorted(set(out))
+
+
+def _why_not(module: str, target: str) -> str | None:
+    here, there = _floor(module), _floor(target)
+    if there is None or here is None or here == there:
+        return None
+    (floor, part), (target_floor, target_part) = here, there
+    arrow = f"{module} -> {target}"
+    if target_floor == "tool":
+        return None if floor == "tool" and target_part in TOOL_HELPERS else f"{arrow} (imports a tool)"
+    if floor == "tool":
+        return None
+    if floor == "pipeline":
+        return f"{arrow} (pipelines are siblings: none imports another)" if target_floor == "pipeline" else None
+    if target_floor == "pipeline":
+        return f"{arrow} (a foundation imports a pipeline)"
+    if part and target_part and FOUNDATION_RANKS.get(target_part, 99) > FOUNDATION_RANKS.get(part, -1):
+        return f"{arrow} (foundation rank {FOUNDATION_RANKS.get(part)} imports rank {FOUNDATION_RANKS.get(target_part)})"
+    return None
+
+
+def test_every_module_has_a_floor():
+    parts = {n[:-3] if n.endswith(".py") else n for n in os.listdir(os.path.join(ROOT, "ff3d_tf"))
+             if n.endswith(".py") or os.path.isdir(os.path.join(ROOT, "ff3d_tf", n))} - {"__init__", "__pycache__"}
+    assert parts - set(PIPELINES) - set(FOUNDATION_RANKS) == set(), "give each new module a floor here"
+
+
+def test_the_floors_hold():
+    assert layering_violations(ROOT) == []
+
+
+def _fake_tree(root, files: dict[str, str]) -> str:
+    for rel, text in files.items():
+        path = os.path.join(root, rel)
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, "w") as f:
+            f.write(text)
+    return str(root)
+
+
+def test_the_layering_check_finds_each_kind_of_arrow(tmp_path):
+    root = _fake_tree(tmp_path, {
+        "ff3d_tf/__init__.py": "",
+        "ff3d_tf/schema.py": "",
+        "ff3d_tf/config.py": "from ff3d_tf import schema\n",  # rank 1 -> 0: fine
+        "ff3d_tf/geometry.py": "def f():\n    from ff3d_tf import config\n",  # rank 0 -> 1, function-local
+        "ff3d_tf/model/__init__.py": "from . import layers\nfrom ..training import trainer\n",  # relative: -> pipeline
+        "ff3d_tf/model/layers.py": "",
+        "ff3d_tf/training/trainer.py": "from ff3d_tf.model import layers\nimport ff3d_tf.inference.predictor\n",
+        "ff3d_tf/inference/predictor.py": "from ff3d_tf.checkpoints import x\n",  # pipeline -> foundation: fine
+        "ff3d_tf/labels/box_flow.py": "def g():\n    from ff3d_tf.training.trainer import Trainer\n",
+        "tools/_common.py": "",
+        "tools/a.py": "import _common\nfrom ff3d_tf.training import trainer\n",  # fine
+        "tools/b.py": "from tools import a\n",
+        "tools/c.py": "def h():\n    from a import helper\n",  # tools/ is on sys.path: `a` is tools/a.py
+    })
+    found = layering_violations(root)
+    assert found == sorted([
+        "ff3d_tf/geometry.py:2: ff3d_tf.geometry -> ff3d_tf.config (foundation rank 0 imports rank 1)",
+        "ff3d_tf/labels/box_flow.py:2: ff3d_tf.labels.box_flow -> ff3d_tf.training.trainer.Trainer (pipelines are "
+        "siblings: none imports another)",
+        "ff3d_tf/model/__init__.py:2: ff3d_tf.model -> ff3d_tf.training.trainer (a foundation imports a pipeline)",
+        "ff3d_tf/training/trainer.py:2: ff3d_tf.training.trainer -> ff3d_tf.inference.predictor (pipelines are "
+        "siblings: none imports another)",
+        "tools/b.py:1: tools.b -> tools.a (imports a tool)",
+        "tools/c.py:2: tools.c -> tools.a.helper (imports a tool)",
+    ]), found

@@ -32,7 +32,7 @@ def run(main) -> None:
     config) ends the tool with that message and exit status 1 instead of a traceback."""
     from ff3d_tf.config import ConfigError
     from ff3d_tf.data.waymo import FrameDecodeError
-    from ff3d_tf.training.checkpoints import CheckpointError
+    from ff3d_tf.checkpoints import CheckpointError
     try:
         main()
     except (CheckpointError, FrameDecodeError, ConfigError) as e:

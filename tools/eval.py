@@ -6,7 +6,7 @@ import os
 
 import _common
 
-from ff3d_tf.training import metrics as M
+from ff3d_tf import metrics as M
 from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.inference.predictor import load_predictor
 from ff3d_tf.training.evaluation import evaluate, write_results

@@ -2,7 +2,7 @@
 import _common
 
 from ff3d_tf.inference.saved_model import export_saved_model
-from ff3d_tf.inference.predictor import restore_model
+from ff3d_tf.checkpoints import restore_model
 
 
 def main():

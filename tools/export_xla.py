@@ -36,7 +36,7 @@ def main():
     train_points = integers("train_points", args.train_points)
     train_batch_sizes = integers("train_batch_sizes", args.train_batch_sizes)
     if args.checkpoint:
-        from ff3d_tf.inference.predictor import restore_model
+        from ff3d_tf.checkpoints import restore_model
         model = restore_model(cfg, args.checkpoint)
     else:
         from ff3d_tf.model import build_model

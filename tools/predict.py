@@ -16,8 +16,8 @@ from ff3d_tf.inference.predictor import load_predictor
 
 def _examples(args, cfg) -> tf.data.Dataset:
     if args.av2_log:
-        from ff3d_tf.data import argoverse2
-        return tf.data.Dataset.from_tensors(argoverse2.model_example(args.av2_log, cfg))
+        from ff3d_tf.labels import av2
+        return tf.data.Dataset.from_tensors(av2.model_example(args.av2_log, cfg))
     first = next(waymo.iterate_records(args.input))[1]
     try:
         waymo.decode_frame(first, laser_names=cfg.data.laser_names, source=args.input)

@@ -209,7 +209,7 @@ def child(args) -> dict:
     import tensorflow as tf
     from benchmark_latency import _example, _train_steppers
     from ff3d_tf.config import replace_config
-    from ff3d_tf.inference.predictor import compiled_forward, model_inputs
+    from ff3d_tf.model.forward import compiled_forward, model_inputs
     from ff3d_tf.model import build_model
     from ff3d_tf.model import compile as compile_lib
 

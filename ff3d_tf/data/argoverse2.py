@@ -11,7 +11,7 @@ import os
 
 import numpy as np
 
-from ff3d_tf import schema
+from ff3d_tf import geometry, schema
 
 # AV2 categories -> flow classes; categories not listed are other labelled objects: their points move with their
 # cuboid but are counted as background (class 0) in the per-class tables.
@@ -84,17 +84,6 @@ def _unit_quaternions(path: str, t: dict[str, np.ndarray]) -> None:
                                     f"{QUATERNION_NORM_TOLERANCE}")
 
 
-def _yaw(qw, qx, qy, qz):
-    return np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-
-
-def _rotation(qw, qx, qy, qz) -> np.ndarray:
-    return np.array([
-        [1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qz * qw), 2 * (qx * qz + qy * qw)],
-        [2 * (qx * qy + qz * qw), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qx * qw)],
-        [2 * (qx * qz - qy * qw), 2 * (qy * qz + qx * qw), 1 - 2 * (qx * qx + qy * qy)]])
-
-
 def sweep_timestamps(log_dir: str) -> list[int]:
     lidar_dir = os.path.join(log_dir, "sensors", "lidar")
     if not os.path.isdir(lidar_dir):
@@ -117,7 +106,7 @@ def ego_pose(log_dir: str, timestamp_ns: int) -> np.ndarray:
     i = hit[0]
     _unit_quaternions(path, {q: t[q][i:i + 1] for q in ("qw", "qx", "qy", "qz")})
     m = np.eye(4)
-    m[:3, :3] = _rotation(t["qw"][i], t["qx"][i], t["qy"][i], t["qz"][i])
+    m[:3, :3] = geometry.rotation_from_quaternion_np(t["qw"][i], t["qx"][i], t["qy"][i], t["qz"][i])
     m[:3, 3] = (t["tx_m"][i], t["ty_m"][i], t["tz_m"][i])
     return m
 
@@ -138,7 +127,7 @@ def cuboids(log_dir: str, timestamp_ns: int) -> dict:
     return {
         "center": np.stack([t["tx_m"][sel], t["ty_m"][sel], t["tz_m"][sel]], -1).astype(np.float64),
         "size": np.stack([t["length_m"][sel], t["width_m"][sel], t["height_m"][sel]], -1).astype(np.float64),
-        "heading": _yaw(t["qw"][sel], t["qx"][sel], t["qy"][sel], t["qz"][sel]).astype(np.float64),
+        "heading": geometry.yaw_from_quaternion_np(t["qw"][sel], t["qx"][sel], t["qy"][sel], t["qz"][sel]).astype(np.float64),
         "track_id": np.asarray(t["track_uuid"][sel]).astype(str),
         "class_id": np.array([AV2_CLASS.get(str(c), schema.CLASS_BACKGROUND) for c in cats], np.int32),
     }
@@ -162,21 +151,6 @@ def read_sweep(log_dir: str, timestamp_ns: int) -> dict:
     }
 
 
-def labelled_pair(log_dir: str, index: int = 1) -> tuple[dict, dict]:
-    """(frame t-1, frame t0) for sweeps index-1 and index, the t0 frame labelled by `bootstrap_flow` (paper convention)."""
-    from ff3d_tf.labels.box_flow import bootstrap_flow
-    stamps = sweep_timestamps(log_dir)
-    if not 1 <= index < len(stamps):
-        raise Argoverse2FormatError(os.path.join(log_dir, "sensors", "lidar"), "file",
-                                    f"a pair needs sweeps {index - 1} and {index}; the log has {len(stamps)}")
-    ts_tm1, ts_t0 = stamps[index - 1], stamps[index]
-    f_tm1, f_t0 = read_sweep(log_dir, ts_tm1), read_sweep(log_dir, ts_t0)
-    flow, cls = bootstrap_flow(f_t0["points_xyz"], cuboids(log_dir, ts_t0), cuboids(log_dir, ts_tm1), f_t0["pose"],
-                               f_tm1["pose"], (ts_t0 - ts_tm1) * 1e-9)
-    f_t0["flow_mps"], f_t0["class_id"] = flow, cls
-    return f_tm1, f_t0
-
-
 def argoverse_flow_in_paper_convention(log_dir: str) -> tuple[np.ndarray, np.ndarray]:
     """Argoverse's own labels of sweep 0 converted to the paper's convention, (displacement_m [N,3] in the sweep-0
     ego frame with ego motion removed, over sweep 0 -> sweep 1; the `dynamic`/class columns are not used).
@@ -188,18 +162,5 @@ def argoverse_flow_in_paper_convention(log_dir: str) -> tuple[np.ndarray, np.nda
     p = read_sweep(log_dir, stamps[0])["points_xyz"].astype(np.float64)
     lab = _table(os.path.join(log_dir, "flow_labels.feather"), FLOW_COLUMNS)
     f = np.stack([lab["flow_tx_m"], lab["flow_ty_m"], lab["flow_tz_m"]], -1).astype(np.float64)
-    ego1_from_ego0 = np.linalg.inv(ego_pose(log_dir, stamps[1])) @ ego_pose(log_dir, stamps[0])
-    ego0_from_ego1 = np.linalg.inv(ego1_from_ego0)
-    x1 = p + f
-    return x1 @ ego0_from_ego1[:3, :3].T + ego0_from_ego1[:3, 3] - p, p
-
-
-def model_example(log_dir: str, cfg, index: int = 1) -> dict:
-    """A model input example (NumPy, `ff3d_tf.schema` pair keys) of sweeps index-1 -> index, labelled by bootstrap."""
-    import tensorflow as tf
-
-    from ff3d_tf.data.pairs import make_pair
-    f_tm1, f_t0 = labelled_pair(log_dir, index)
-    ex = make_pair({k: tf.constant(v) for k, v in f_tm1.items()}, {k: tf.constant(v) for k, v in f_t0.items()}, cfg,
-                   seed=tf.constant([1, 7]))
-    return {k: v.numpy() for k, v in ex.items()}
+    ego0_from_ego1 = geometry.t0_from_tm1_np(ego_pose(log_dir, stamps[0]), ego_pose(log_dir, stamps[1]))
+    return geometry.transform_points_np(p + f, ego0_from_ego1) - p, p

@@ -13,7 +13,7 @@ import os
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf import schema
+from ff3d_tf import geometry, schema
 from ff3d_tf.config import ABLATED_CLASSES, ExperimentConfig
 from ff3d_tf.data import waymo
 
@@ -27,7 +27,7 @@ def bucket_size(num_points: int, base: int) -> int:
     return int(sizes[np.searchsorted(sizes, max(int(num_points), 1))])
 
 
-def _bucket_size_tf(n, base: int):
+def bucket_size_tf(n, base: int):
     sizes = tf.constant((_BUCKET_MULTIPLIERS * base).astype(np.int32))
     return tf.gather(sizes, tf.searchsorted(sizes, tf.reshape(tf.maximum(n, 1), [1]))[0])
 
@@ -49,17 +49,11 @@ def decode_options(cfg: ExperimentConfig, inference_only: bool = False) -> waymo
     return waymo.DecodeOptions(tuple(cfg.data.laser_names), tuple(cfg.data.returns), not inference_only)
 
 
-def transform_points(points_xyz, transform):
-    """[N,3] float32 through a 4x4 float64 transform (computed in float64)."""
-    p = tf.cast(points_xyz, tf.float64)
-    return tf.cast(tf.linalg.matmul(p, transform[:3, :3], transpose_b=True) + transform[:3, 3], tf.float32)
-
-
 def make_pair(frame_tm1: dict, frame_t0: dict, cfg: ExperimentConfig, seed=None) -> dict:
     """One model input example (keys: `ff3d_tf.schema.PAIR_KEYS`) from two decoded frames (tensors)."""
     pose_t0, pose_tm1 = frame_t0["pose"], frame_tm1["pose"]
     if cfg.data.ego_motion_compensation:
-        points_tm1 = transform_points(frame_tm1["points_xyz"], tf.linalg.inv(pose_t0) @ pose_tm1)
+        points_tm1 = geometry.transform_points(frame_tm1["points_xyz"], geometry.t0_from_tm1(pose_t0, pose_tm1))
     else:
         points_tm1 = tf.identity(frame_tm1["points_xyz"])
     ex = {
@@ -193,7 +187,7 @@ def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_
         out = dict(batch)
         for suffix, keys in (("t0", T0_POINT_KEYS), ("tm1", TM1_POINT_KEYS)):
             n = tf.shape(batch[keys[0]])[1]
-            target = _bucket_size_tf(n, bucket_base)
+            target = bucket_size_tf(n, bucket_base)
             for k in keys:
                 v = batch[k]
                 paddings = [[0, 0], [0, target - n]] + [[0, 0]] * (len(v.shape) - 2)

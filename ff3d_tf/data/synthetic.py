@@ -19,7 +19,7 @@ import os
 
 import numpy as np
 
-from ff3d_tf import schema
+from ff3d_tf import geometry, schema
 from ff3d_tf.data import wod_format
 
 DT_S = 0.1
@@ -228,14 +228,6 @@ def _ego_pose(road: Road, t: float, ego_speed: float) -> np.ndarray:
     return _ego_poses(road, [t], ego_speed)[0]
 
 
-def _box_matrix(center, heading) -> np.ndarray:
-    m = np.eye(4)
-    c, s = np.cos(heading), np.sin(heading)
-    m[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    m[:3, 3] = center
-    return m
-
-
 def _wrap(angle):
     return (angle + np.pi) % (2 * np.pi) - np.pi
 
@@ -382,7 +374,7 @@ def _point_labels(scene: _FrameScene, road: Road, valid, hits, points_w, prev_la
             continue
         c0, h0 = scene.poses_t[a.track_id]
         c1, h1 = a.pose(road, t_prev)
-        moved = _box_matrix(c1, h1) @ np.linalg.inv(_box_matrix(c0, h0))  # world point at t0 -> t-1
+        moved = geometry.box_matrices_np(c1, h1)[0] @ np.linalg.inv(geometry.box_matrices_np(c0, h0)[0])  # world point at t0 -> t-1
         p0 = points_w[sel]
         p1 = p0 @ moved[:3, :3].T + moved[:3, 3]
         flow_v[sel] = ((p0 - p1) / DT_S) @ vehicle_from_world[:3, :3].T

@@ -26,7 +26,7 @@ from typing import Iterator, NamedTuple
 
 import tensorflow as tf
 
-from ff3d_tf import schema
+from ff3d_tf import geometry, schema
 from ff3d_tf.data import wod_format
 from ff3d_tf.data.wod_format import descriptor_source
 
@@ -36,7 +36,6 @@ DECODE_WORKERS = 2  # threads of decoded_records; each decode also runs its inde
 # Declared range image sizes beyond these are refused before anything of that size is allocated (a WOD TOP range
 # image is 64 x 2650; a decompressed matrix is never reshaped to dims its data does not fill).
 MAX_RANGE_IMAGE_DIM = 1 << 16
-POSE_RIGIDITY_TOLERANCE = wod_format.POSE_RIGIDITY_TOLERANCE
 # Messages the decoder parses with decode_proto (what `diagnose_record` descends into).
 _DECODED_MESSAGES = ("Frame", "Context", "LaserCalibration", "Laser", "RangeImage", "Transform")
 TF_OPS = wod_format.ArrayOps(to_f64=lambda x: tf.cast(x, tf.float64),
@@ -269,17 +268,10 @@ def _present_bytes(size, value, field: str, source, reason: str = "missing", kin
 def frame_pose(parsed: ParsedFrame, source):
     """Step "pose": (vehicle -> world [4,4], world -> vehicle [4,4]) float64; the pose must be rigid."""
     pose = _transform(parsed.pose_msg, "pose", source)
-    rotation = pose[:3, :3]
-    orthonormal = tf.reduce_max(tf.abs(tf.matmul(rotation, rotation, transpose_b=True) - tf.eye(3, dtype=tf.float64)))
-    rigid = (orthonormal <= POSE_RIGIDITY_TOLERANCE) & (tf.linalg.det(rotation) > 0) & \
-        tf.reduce_all(tf.equal(pose[3], tf.constant([0.0, 0.0, 0.0, 1.0], tf.float64)))
-    pose = _guarded(pose, [_check(rigid, "pose", f"not a rigid transform (rotation orthonormal within "
-                                              f"{POSE_RIGIDITY_TOLERANCE}, det > 0, bottom row 0 0 0 1)", source)])
-    # Closed-form inverse of a rigid transform: [R^T, -R^T t].
-    rotation_inv = tf.transpose(pose[:3, :3])
-    translation_inv = -tf.linalg.matvec(rotation_inv, pose[:3, 3])
-    vehicle_from_world = tf.concat([tf.concat([rotation_inv, translation_inv[:, None]], 1),
-                                    tf.constant([[0.0, 0.0, 0.0, 1.0]], tf.float64)], 0)
+    pose = _guarded(pose, [_check(geometry.is_rigid_pose(pose), "pose", f"not a rigid transform (finite, "
+                                  f"rotation orthonormal within {geometry.POSE_RIGIDITY_TOLERANCE:g}, det > 0, bottom "
+                                  f"row 0 0 0 1)", source)])
+    vehicle_from_world = geometry.rigid_inverse(pose)
     return pose, vehicle_from_world
 
 

@@ -74,11 +74,6 @@ def encode_transform(matrix: np.ndarray) -> list[float]:
     return [float(v) for v in np.asarray(matrix, dtype=np.float64).reshape(16)]
 
 
-# max |R^T R - I| of an accepted vehicle pose: WOD poses are rigid to float64 precision, and a rigid pose rounded through
-# float32 (~1e-7) still passes. The reader checks frame poses with it, the SavedModel its pose arguments.
-POSE_RIGIDITY_TOLERANCE = 1e-4
-
-
 def rotation_from_rpy(roll, pitch, yaw) -> np.ndarray:
     """R = Rz(yaw) @ Ry(pitch) @ Rx(roll) (the range image pose convention), [..., 3, 3]."""
     cr, sr = np.cos(roll), np.sin(roll)

@@ -9,7 +9,7 @@ per bucket.
 Inputs are checked inside the signature (so every client gets the same rules) and again, with a Python error, by
 `SavedModelPredictor`:
 - each pose must be a rigid transform: all 16 entries finite, bottom row [0, 0, 0, 1] and a rotation R with
-  max |R^T R - I| <= POSE_TOLERANCE and det R > 0; else `InvalidArgumentError` (signature) or `ValueError`
+  max |R^T R - I| <= `geometry.POSE_RIGIDITY_TOLERANCE` and det R > 0; else `InvalidArgumentError` (signature) or `ValueError`
   (predictor) naming `pose_tm1` or `pose_t0` and the rule broken;
 - points with a NaN/Inf coordinate or feature are not errors: they are masked like points outside the grid
   (`point_valid` false, flow 0);
@@ -17,56 +17,19 @@ Inputs are checked inside the signature (so every client gets the same rules) an
 """
 from __future__ import annotations
 
-import numpy as np
 import tensorflow as tf
 
-from ff3d_tf.data.pairs import _bucket_size_tf, transform_points
-from ff3d_tf.data.wod_format import POSE_RIGIDITY_TOLERANCE
+from ff3d_tf import geometry
+from ff3d_tf.data.pairs import bucket_size_tf
 from ff3d_tf.model.fastflow3d import FastFlow3D
 
-# max |R^T R - I| and max |bottom row - [0, 0, 0, 1]| of an accepted pose: the reader's tolerance for frame poses
-POSE_TOLERANCE = POSE_RIGIDITY_TOLERANCE
 POSE_NAMES = ("pose_tm1", "pose_t0")
 
 
-def _pose_rules(name: str) -> dict:
-    """The message of each pose rule (one text for the signature's and the predictor's checks)."""
-    return {"finite": f"{name} must be finite (it holds NaN or Inf)",
-            "bottom_row": f"{name} must have the bottom row [0, 0, 0, 1] (within {POSE_TOLERANCE:g})",
-            "orthonormal": f"{name} must be rigid: its rotation R needs max |R^T R - I| <= {POSE_TOLERANCE:g} "
-                           f"(a zero, scaled or sheared matrix is not a pose)",
-            "proper": f"{name} must be a rotation with det R > 0, not a reflection"}
-
-
-def pose_problem(pose: np.ndarray, name: str) -> str | None:
-    """The first rule a [4,4] vehicle -> world pose breaks (message naming `name`), or None for a rigid transform."""
-    rules = _pose_rules(name)
-    pose = np.asarray(pose, np.float64)
-    if not np.isfinite(pose).all():
-        return rules["finite"]
-    if np.abs(pose[3] - [0.0, 0.0, 0.0, 1.0]).max() > POSE_TOLERANCE:
-        return rules["bottom_row"]
-    rotation = pose[:3, :3]
-    if np.abs(rotation.T @ rotation - np.eye(3)).max() > POSE_TOLERANCE:
-        return rules["orthonormal"]
-    if np.linalg.det(rotation) <= 0:
-        return rules["proper"]
-    return None
-
-
 def _pose_assertions(pose, name: str) -> list:
-    """Graph-side `pose_problem`: one assertion op per rule, each failing with that rule's message."""
-    rules = _pose_rules(name)
-    finite = tf.reduce_all(tf.math.is_finite(pose))
-    safe = tf.where(tf.math.is_finite(pose), pose, tf.zeros_like(pose))  # later rules see finite numbers only
-    rotation = safe[:3, :3]
-    gram_error = tf.reduce_max(tf.abs(tf.matmul(rotation, rotation, transpose_a=True) - tf.eye(3, dtype=tf.float64)))
-    bottom_error = tf.reduce_max(tf.abs(safe[3] - tf.constant([0.0, 0.0, 0.0, 1.0], tf.float64)))
-    return [tf.debugging.Assert(finite, [rules["finite"]]),
-            tf.debugging.Assert(~finite | (bottom_error <= POSE_TOLERANCE), [rules["bottom_row"]]),
-            tf.debugging.Assert(~finite | (gram_error <= POSE_TOLERANCE), [rules["orthonormal"]]),
-            tf.debugging.Assert(~finite | (gram_error > POSE_TOLERANCE) | (tf.linalg.det(rotation) > 0),
-                                [rules["proper"]])]
+    """One assertion op per rule of the pose check (`ff3d_tf.geometry`), each failing with that rule's message."""
+    held, messages = geometry.pose_rules_hold(pose), geometry.pose_rule_messages(name)
+    return [tf.debugging.Assert(held[rule], [messages[rule]]) for rule in geometry.POSE_RULES]
 
 
 class FlowServingModule(tf.Module):
@@ -77,7 +40,7 @@ class FlowServingModule(tf.Module):
         self._infer = tf.function(lambda inputs: model(inputs, training=False), jit_compile=jit_compile)
 
     def _pad(self, points, n):
-        target = _bucket_size_tf(n, self.bucket_base)
+        target = bucket_size_tf(n, self.bucket_base)
         return tf.pad(points, [[0, target - n], [0, 0]])[None], tf.sequence_mask(n, target)[None]
 
     @tf.function(input_signature=[tf.TensorSpec([None, 5], tf.float32, name="points_tm1"),
@@ -89,7 +52,7 @@ class FlowServingModule(tf.Module):
         with tf.control_dependencies(checks):  # no flow from a pose that is not rigid
             pose_tm1, pose_t0 = tf.identity(pose_tm1), tf.identity(pose_t0)
         n0, n1 = tf.shape(points_t0)[0], tf.shape(points_tm1)[0]
-        xyz_tm1 = transform_points(points_tm1[:, :3], tf.linalg.inv(pose_t0) @ pose_tm1)
+        xyz_tm1 = geometry.transform_points(points_tm1[:, :3], geometry.t0_from_tm1(pose_t0, pose_tm1))
         p0, m0 = self._pad(points_t0, n0)
         p1, m1 = self._pad(tf.concat([xyz_tm1, points_tm1[:, 3:]], -1), n1)
         out = self._infer({"points_xyz_t0": p0[..., :3], "point_features_t0": p0[..., 3:], "point_mask_t0": m0,
@@ -107,7 +70,7 @@ def export_saved_model(model: FastFlow3D, path: str, bucket_base: int, jit_compi
 class SavedModelPredictor:
     """Calls a SavedModel's serving signature; raises a clear `ValueError` naming the argument on bad input.
 
-    Wrong dtype, rank or width, and poses that are not rigid transforms (`pose_problem`), fail here before the call.
+    Wrong dtype, rank or width, and poses that are not rigid transforms (`geometry.pose_problem_np`), fail here before the call.
     One instance may be called from several threads at once (the loaded function holds no per-call state).
     """
 
@@ -132,7 +95,7 @@ class SavedModelPredictor:
                 raise ValueError(f"{self.path}: input {name} must have shape [{shape_text}], got {t.shape}")
             tensors[name] = t
         for name in POSE_NAMES:
-            problem = pose_problem(tensors[name].numpy(), name)
+            problem = geometry.pose_problem_np(tensors[name].numpy(), name)
             if problem:
                 raise ValueError(f"{self.path}: {problem}")
         return self.fn(**tensors)

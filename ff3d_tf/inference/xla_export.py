@@ -30,12 +30,13 @@ from typing import Sequence
 import numpy as np
 import tensorflow as tf
 
+from ff3d_tf import internals
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data.pairs import bucket_size
 from ff3d_tf.inference import xla_artifact
 from ff3d_tf.model import build_model
 from ff3d_tf.model.fastflow3d import INPUT_KEYS
-from ff3d_tf.training.losses import batch_flow_loss
+from ff3d_tf.model.losses import batch_flow_loss
 from ff3d_tf.training.trainer import learning_rate_schedule, make_optimizer
 
 OUTPUT_KEYS = ("flow_mps", "point_valid")
@@ -161,64 +162,6 @@ def train_step_hlo(cfg: ExperimentConfig, model, batch_size: int, padded_points:
             *specs)(stage="hlo_serialized")
 
 
-def _stablehlo_avals(stablehlo: bytes):
-    import jax
-    from jax.extend.mlir import ir
-    from jax.interpreters import mlir
-    dtypes = {"f32": np.float32, "bf16": jax.numpy.bfloat16, "i1": np.bool_, "i32": np.int32, "i64": np.int64}
-
-    def aval(t):
-        t = ir.RankedTensorType(t)
-        name = str(t.element_type)
-        if name not in dtypes:
-            raise TypeError(f"forward program has a {name} tensor; supported: {sorted(dtypes)}")
-        return jax.core.ShapedArray(tuple(t.shape), dtypes[name])
-    with mlir.make_ir_context():
-        main = ir.SymbolTable(ir.Module.parse(stablehlo).operation)["main"]
-        return [aval(t) for t in main.type.inputs], [aval(t) for t in main.type.results]
-
-
-def _program_primitive():
-    """A JAX primitive `program_p.bind(*args, stablehlo=bytes, out_avals=...)` that calls a StableHLO module."""
-    from jax.extend.core import Primitive
-    from jax.extend.mlir import ir
-    from jax.extend.mlir.dialects import func
-    from jax.interpreters import mlir
-    program_p = Primitive("ff3d_tf_xla_program")
-    program_p.multiple_results = True
-    program_p.def_abstract_eval(lambda *args, stablehlo, out_avals: list(out_avals))
-
-    def lowering(ctx, *args, stablehlo, out_avals):
-        del out_avals
-        module = ir.Module.parse(stablehlo, context=ctx.module_context.context)
-        result_types = ir.SymbolTable(module.operation)["main"].type.results
-        name = mlir.merge_mlir_modules(ctx.module_context.module, "ff3d_tf_forward", module,
-                                       dst_symtab=ctx.module_context.symbol_table)
-        return func.CallOp(result_types, ir.FlatSymbolRefAttr.get(name), list(args)).results
-    mlir.register_lowering(program_p, lowering)
-    return program_p
-
-
-_PROGRAM_P = None
-
-
-def hlo_to_exported(hlo: bytes, platforms: Sequence[str] = PLATFORMS):
-    """A `jax.export.Exported` that runs the HLO program (lowered for `platforms`; no device of them needed)."""
-    global _PROGRAM_P
-    import jax
-    from jax import export
-    from jax.extend.mlir import hlo_to_stablehlo
-    if _PROGRAM_P is None:
-        _PROGRAM_P = _program_primitive()
-    stablehlo = hlo_to_stablehlo(hlo)
-    in_avals, out_avals = _stablehlo_avals(stablehlo)
-
-    def program(*args):
-        return _PROGRAM_P.bind(*args, stablehlo=stablehlo, out_avals=tuple(out_avals))
-    specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in in_avals]
-    return export.export(jax.jit(program), platforms=tuple(platforms))(*specs)
-
-
 def _tracing_model(cfg: ExperimentConfig, precision: str, model):
     """The model whose forward is traced for `precision` (weights are arguments, so a fresh one is fine)."""
     mixed = precision == "bfloat16"
@@ -233,7 +176,7 @@ def _tracing_model(cfg: ExperimentConfig, precision: str, model):
 
 
 def _write_artifact(out_dir: str, name: str, hlo: bytes, platforms, log) -> int:
-    blob = hlo_to_exported(hlo, platforms).serialize()
+    blob = internals.hlo_to_jax_exported(hlo, platforms).serialize()
     with open(os.path.join(out_dir, name), "wb") as f:
         f.write(blob)
     log(f"{name}: {len(blob) / 1e3:.0f} kB")

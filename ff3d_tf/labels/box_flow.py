@@ -9,20 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ff3d_tf import schema
+from ff3d_tf import geometry, schema
 
 BOX_KEYS = ("center", "size", "heading", "track_id", "class_id")
 _MAX_TABLE_CELLS = 1 << 22  # bound on the cell -> box table of points_in_boxes (cells per layer)
-
-
-def box_matrices(center: np.ndarray, heading: np.ndarray) -> np.ndarray:
-    """[K,4,4] box -> vehicle transforms (yaw-only boxes, as in WOD and AV2 cuboids up to a negligible tilt)."""
-    k = len(heading)
-    m = np.tile(np.eye(4), (k, 1, 1))
-    c, s = np.cos(heading), np.sin(heading)
-    m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1] = c, -s, s, c
-    m[:, :3, 3] = center
-    return m
 
 
 def empty_boxes() -> dict:
@@ -128,15 +118,15 @@ def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose
         return flow, cls
     owner = points_in_boxes(pts, boxes_t0, tolerance_m, enlarge_m)
     k = len(boxes_t0["heading"])
-    b_t0 = box_matrices(np.asarray(boxes_t0["center"], np.float64), np.asarray(boxes_t0["heading"], np.float64))
+    b_t0 = geometry.box_matrices_np(np.asarray(boxes_t0["center"], np.float64), np.asarray(boxes_t0["heading"], np.float64))
     tm1_index = {str(t): i for i, t in enumerate(boxes_tm1["track_id"])}
     match = np.array([tm1_index.get(str(t), -1) for t in boxes_t0["track_id"]], np.int64)  # [K]
     # T_delta per t0 box (identity where unmatched): t0 point -> its position at t-1, in the t0 frame.
     t_delta = np.tile(np.eye(4), (k, 1, 1))
     if np.any(match >= 0):
-        b_tm1 = box_matrices(np.asarray(boxes_tm1["center"], np.float64),
+        b_tm1 = geometry.box_matrices_np(np.asarray(boxes_tm1["center"], np.float64),
                              np.asarray(boxes_tm1["heading"], np.float64))
-        t0_from_tm1 = np.linalg.inv(np.asarray(pose_t0, np.float64)) @ np.asarray(pose_tm1, np.float64)
+        t0_from_tm1 = geometry.t0_from_tm1_np(pose_t0, pose_tm1)
         m = match >= 0
         t_delta[m] = t0_from_tm1 @ b_tm1[match[m]] @ np.linalg.inv(b_t0[m])
     inside = np.flatnonzero(owner >= 0)

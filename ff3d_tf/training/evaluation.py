@@ -10,8 +10,8 @@ import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
-from ff3d_tf.training.metrics import AV2_MAX_DISTANCE_M, CROP_PREFIX, SceneFlowMetrics, published_epe_keys
-from ff3d_tf.inference.predictor import Predictor
+from ff3d_tf.metrics import AV2_MAX_DISTANCE_M, CROP_PREFIX, SceneFlowMetrics, published_epe_keys
+from ff3d_tf.model.forward import Predictor
 
 
 def count_pairs(files: list[str]) -> int:

@@ -21,10 +21,10 @@ import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
-from ff3d_tf.training.checkpoints import restore_newest_intact
-from ff3d_tf.training.losses import batch_flow_loss
-from ff3d_tf.training.metrics import SceneFlowMetrics
-from ff3d_tf.inference.predictor import compiled_forward, model_inputs
+from ff3d_tf.checkpoints import restore_newest_intact
+from ff3d_tf.model.losses import batch_flow_loss
+from ff3d_tf.metrics import SceneFlowMetrics
+from ff3d_tf.model.forward import compiled_forward, model_inputs
 from ff3d_tf.model import build_model
 
 _LOG = logging.getLogger(__name__)

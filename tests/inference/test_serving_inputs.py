@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
-from ff3d_tf.inference.saved_model import POSE_TOLERANCE, SavedModelPredictor, export_saved_model, pose_problem
+from ff3d_tf.geometry import POSE_RIGIDITY_TOLERANCE as POSE_TOLERANCE, pose_problem_np as pose_problem
+from ff3d_tf.inference.saved_model import SavedModelPredictor, export_saved_model
 from ff3d_tf.model import build_model
 
 

@@ -16,7 +16,7 @@ from ff3d_tf.inference import xla_artifact  # noqa: E402
 from ff3d_tf.inference.xla_export import export_forward, model_weights  # noqa: E402
 from ff3d_tf.model import build_model  # noqa: E402
 from ff3d_tf.model.fastflow3d import INPUT_KEYS  # noqa: E402
-from ff3d_tf.training.losses import batch_flow_loss  # noqa: E402
+from ff3d_tf.model.losses import batch_flow_loss  # noqa: E402
 from ff3d_tf.training.trainer import make_optimizer  # noqa: E402
 
 POINTS = (700, 1500)  # tiny config buckets (base 1024): 1024 and 1536

@@ -81,7 +81,7 @@ def test_reproduces_argoverse2_labels():
 
 
 def test_model_example_from_argoverse2(tiny_config):
-    from ff3d_tf.data import argoverse2 as av2
+    from ff3d_tf.labels import av2
     ex = av2.model_example(AV2_LOG, tiny_config)
     assert ex["points_xyz_t0"].shape[0] == ex["flow_mps_t0"].shape[0] > 1000
     assert (ex["class_id_t0"] == 1).sum() > 100

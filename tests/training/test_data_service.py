@@ -10,9 +10,9 @@ from conftest import ROOT
 
 from ff3d_tf.config import replace_config
 from ff3d_tf.data import pairs
-from ff3d_tf.inference.predictor import model_inputs
+from ff3d_tf.model.forward import model_inputs
 from ff3d_tf.training.data_service import start_dispatcher, start_worker
-from ff3d_tf.training.losses import per_sample_flow_loss
+from ff3d_tf.model.losses import per_sample_flow_loss
 from ff3d_tf.training.trainer import Trainer
 
 

@@ -3,7 +3,8 @@ import numpy as np
 
 from ff3d_tf.data import pairs
 from ff3d_tf.training.evaluation import evaluate
-from ff3d_tf.inference.predictor import ModelPredictor, SavedModelPairPredictor
+from ff3d_tf.inference.predictor import SavedModelPairPredictor
+from ff3d_tf.model.forward import ModelPredictor
 from ff3d_tf.inference.saved_model import export_saved_model
 from ff3d_tf.model import build_model
 

@@ -101,7 +101,7 @@ def _assert_same_as_reference(model_dir, reference):
 def test_killed_inside_a_checkpoint_write_resumes_to_the_same_weights(tiny_segment, tmp_path):
     """Killed inside the ckpt-3 write, and the newest complete checkpoint then truncated (a full disk, a bad copy):
     the rerun moves it aside, resumes from the one before and ends with the uninterrupted run's weights."""
-    from ff3d_tf.training.checkpoints import list_checkpoints
+    from ff3d_tf.checkpoints import list_checkpoints
     data_dir = os.path.dirname(tiny_segment)
     reference = TrainRun(data_dir, tmp_path / "reference")  # uninterrupted, side by side with the killed one
     model_dir = tmp_path / "m"

@@ -20,7 +20,7 @@ import tensorflow as tf
 from conftest import ROOT, TINY_OVERRIDES
 from replica_reference import GLOBAL_BATCH, Reference, replica_config
 
-from ff3d_tf.inference.predictor import restore_model
+from ff3d_tf.checkpoints import restore_model
 from ff3d_tf.training.trainer import training_dataset
 
 STEPS = 3

@@ -18,7 +18,7 @@ def _weights(trainer):
 
 @pytest.mark.parametrize("root", ["local", "ram://"])
 def test_two_steps_change_weights_and_write_config(tiny_segment, tiny_config, tmp_path, root):
-    from ff3d_tf.inference.predictor import restore_model
+    from ff3d_tf.checkpoints import restore_model
     # `ram://` stands in for a cloud model_dir (gs://): checkpoints, config and history go through tf.io.gfile.
     model_dir = str(tmp_path / "m") if root == "local" else f"ram://{tmp_path}/m"
     t = Trainer(_cfg(tiny_config), model_dir, [tiny_segment], log_fn=lambda s: None)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
-from ff3d_tf.training.metrics import SceneFlowMetrics, format_paper_table
+from ff3d_tf.metrics import SceneFlowMetrics, format_paper_table
 
 NAMES = ["background", "vehicle", "pedestrian", "sign", "cyclist"]
 
@@ -110,9 +110,9 @@ def test_max_distance_crop_against_numpy():
 
 def test_evaluation_reports_crop(tiny_segment, tiny_config):
     from ff3d_tf.data import pairs
-    from ff3d_tf.inference.predictor import Predictor
+    from ff3d_tf.model.forward import Predictor
     from ff3d_tf.training.evaluation import evaluate
-    from ff3d_tf.training.metrics import CROP_PREFIX, format_extra_tables
+    from ff3d_tf.metrics import CROP_PREFIX, format_extra_tables
 
     class HalfFlow(Predictor):  # predicts half the true flow for every point
         def predict(self, batch, example):

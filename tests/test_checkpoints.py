@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
-from ff3d_tf.inference.predictor import load_predictor, restore_model
-from ff3d_tf.training import checkpoints
-from ff3d_tf.training.checkpoints import CheckpointError
+from ff3d_tf.checkpoints import restore_model
+from ff3d_tf.inference.predictor import load_predictor
+from ff3d_tf import checkpoints
+from ff3d_tf.checkpoints import CheckpointError
 from ff3d_tf.training.trainer import Trainer
 
 

@@ -1,7 +1,7 @@
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf.training.losses import per_sample_flow_loss
+from ff3d_tf.model.losses import per_sample_flow_loss
 
 
 def test_loss_by_hand():

@@ -23,6 +23,9 @@ import keras
 import tensorflow as tf
 from tensorflow.core.protobuf import trackable_object_graph_pb2
 
+from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.model import build_model
+
 DAMAGED_DIR = "damaged"
 _OBJECT_GRAPH_KEY = "_CHECKPOINTABLE_OBJECT_GRAPH"
 _VARIABLE_ATTRIBUTE = "VARIABLE_VALUE"
@@ -202,3 +205,41 @@ def restore_newest_intact(checkpoint: tf.train.Checkpoint, checkpoint_dir: str, 
     if prefix is not None:
         checkpoint.restore(prefix).assert_existing_objects_matched()
     return prefix
+
+
+def resolve_checkpoint(path: str) -> str:
+    """A checkpoint prefix from a checkpoint prefix or a model_dir (its newest checkpoint, found from the files)."""
+    if tf.io.gfile.exists(path + ".index"):
+        return path  # a prefix (checked first: ram:// calls any prefix of a file a directory)
+    if tf.io.gfile.isdir(path):
+        found = list_checkpoints(os.path.join(path, "checkpoints")) or list_checkpoints(path)
+        if not found:
+            raise FileNotFoundError(f"no checkpoint under {path} (expected {path}/checkpoints/ckpt-N.index)")
+        return found[0]
+    return path
+
+
+def restore_model(cfg: ExperimentConfig, checkpoint_path: str):
+    """The model of `cfg` with the weights of a checkpoint prefix or a model_dir's newest checkpoint.
+
+    The checkpoint is verified first (`ff3d_tf.checkpoints.verify_checkpoint`): a damaged one, or one of
+    another config, raises `CheckpointError` naming it, the reason and, for a model_dir, the newest intact one.
+    Nothing is moved: choosing another checkpoint is the caller's decision.
+    """
+    model = build_model(cfg)
+    root = tf.train.Checkpoint(model=model)
+    prefix = resolve_checkpoint(checkpoint_path)
+    try:
+        verify_checkpoint(root, prefix)
+    except CheckpointError as e:
+        if prefix != checkpoint_path:  # a model_dir was given: say which of its checkpoints would work
+            try:
+                intact = newest_intact(root, os.path.dirname(prefix), log_fn=lambda _: None, move_damaged=False)
+            except CheckpointError:
+                intact = None
+            if intact is not None:
+                raise CheckpointError(prefix, f"{e.reason}; the newest intact checkpoint is {intact} (pass it as "
+                                              f"the checkpoint, or rerun training to resume from it)") from e
+        raise
+    root.restore(prefix).expect_partial()
+    return model
