@@ -109,9 +109,13 @@ class FastFlow3D(keras.Model):
         self.head_z.build((None, None, self.head_hidden_dim))
         self.built = True
 
-    def call(self, inputs, training=False):
+    def call(self, inputs, training=False, inline_stages=None):
+        """`inline_stages=True`: the caller compiles this whole call with XLA (`tf.function(jit_compile=True)`), so
+        the stages are traced inline as plain ops, whatever `compile_mode` (None: found out from the trace)."""
         inputs = {k: inputs[k] for k in INPUT_KEYS}
-        if self.compile_mode == "none" or tf.executing_eagerly() or compile_lib.in_xla_context():
+        if inline_stages is None:
+            inline_stages = compile_lib.in_xla_context()
+        if self.compile_mode == "none" or tf.executing_eagerly() or inline_stages:
             return self._forward(inputs, training)
         # A fresh function per trace of the caller: the stage reads the variables (or, under `stateless_call`, the
         # values that stand in for them) of the graph being traced.
