@@ -6,7 +6,8 @@ A checkpoint is the prefix `DIR/ckpt-N` of `tf.train.CheckpointManager`: `ckpt-N
 
 1. the index exists and parses, and every data shard it needs exists;
 2. every variable reachable from `root` (a `tf.train.Checkpoint` of the model, optimizer, step...) is in the
-   checkpoint's object graph, with the same shape and dtype (else the error names the first variable that differs);
+   checkpoint's object graph, matched as a restore matches it (`tf.train.CheckpointView.match`), with the same shape
+   and dtype (else the error names the first variable that differs);
 3. each of those variables' bytes can be read back (a truncated data file or a flipped bit fails its checksum here).
 
 `restore_newest_intact` is the resume policy of training: the newest intact checkpoint wins; newer damaged ones are
@@ -21,14 +22,13 @@ import re
 
 import keras
 import tensorflow as tf
-from tensorflow.core.protobuf import trackable_object_graph_pb2
 
+from ff3d_tf import internals
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.model import build_model
 
 DAMAGED_DIR = "damaged"
 _OBJECT_GRAPH_KEY = "_CHECKPOINTABLE_OBJECT_GRAPH"
-_VARIABLE_ATTRIBUTE = "VARIABLE_VALUE"
 _FILE_RE = re.compile(r"^(?P<prefix>.+-(?P<number>\d+))\.(?:index|data-\d{5}-of-(?P<shards>\d{5}))$")
 
 
@@ -56,29 +56,29 @@ def list_checkpoints(checkpoint_dir: str) -> list[str]:
     return [os.path.join(checkpoint_dir, p) for p in sorted(numbers, key=lambda p: (numbers[p], p), reverse=True)]
 
 
-def _live_variables(root) -> list[tuple[str, list[str], object]]:
-    """(path, child names from the root, variable) of every variable reachable from `root`, breadth first.
-
-    Breadth first over `tf.train.TrackableView` children is how the checkpoint's object graph was built, so the
-    first path found for a shared variable (e.g. an optimizer's `_variables` and `_momentums`) is the saved one.
-    """
+def _live_variables(root) -> list[tuple[str, object]]:
+    """(path, variable) of every variable reachable from `root`, breadth first over `tf.train.TrackableView` children
+    (the path is the first found: for a shared variable, e.g. an optimizer's `_variables` and `_momentums`, the one a
+    checkpoint saves it under)."""
     view = tf.train.TrackableView(root)
     seen, found = {id(root)}, []
-    queue = collections.deque([([], root)])
+    queue = collections.deque([("", root)])
     while queue:
-        names, obj = queue.popleft()
+        path, obj = queue.popleft()
         for name, child in view.children(obj).items():
             if id(child) in seen:
                 continue
             seen.add(id(child))
+            child_path = f"{path}/{name}" if path else name
             if isinstance(child, (tf.Variable, keras.Variable)):
-                found.append(("/".join(names + [name]), names + [name], child))
+                found.append((child_path, child))
             else:
-                queue.append((names + [name], child))
+                queue.append((child_path, child))
     return found
 
 
-def _object_graph(reader, prefix: str):
+def _saved_keys(reader, prefix: str) -> dict[int, str]:
+    """The tensor key of each variable node of the checkpoint's object graph (`internals.checkpoint_variable_keys`)."""
     if not reader.has_tensor(_OBJECT_GRAPH_KEY):
         raise CheckpointError(prefix, "it holds no object graph (not written by tf.train.Checkpoint)")
     try:
@@ -87,21 +87,9 @@ def _object_graph(reader, prefix: str):
         raise CheckpointError(prefix, f"its object graph cannot be read ({type(e).__name__}: data file truncated "
                                       f"or corrupt)") from e
     try:
-        return trackable_object_graph_pb2.TrackableObjectGraph.FromString(data)
+        return internals.checkpoint_variable_keys(data)
     except Exception as e:  # a decode error of any kind: the bytes are not an object graph
         raise CheckpointError(prefix, f"its object graph does not parse ({type(e).__name__})") from e
-
-
-def _checkpoint_key(graph, names: list[str]) -> str | None:
-    """The tensor key of the variable at `names` in the saved object graph, or None when the graph lacks it."""
-    node = graph.nodes[0]
-    for name in names:
-        children = {c.local_name: c.node_id for c in node.children}
-        if name not in children:
-            return None
-        node = graph.nodes[children[name]]
-    keys = [a.checkpoint_key for a in node.attributes if a.name == _VARIABLE_ATTRIBUTE]
-    return keys[0] if keys else None
 
 
 def _check_files(prefix: str) -> None:
@@ -126,16 +114,17 @@ def verify_checkpoint(root, prefix: str) -> int:
     """
     _check_files(prefix)
     try:
-        # Not tf.train.load_checkpoint: on some filesystems (ram://) it takes a prefix for a directory.
-        reader = tf.compat.v1.train.NewCheckpointReader(prefix)
+        reader = internals.checkpoint_reader(prefix)  # not tf.train.load_checkpoint: see internals
     except Exception as e:  # TF raises several types for an unreadable index; the reason is ours to state
         raise CheckpointError(prefix, f"its index {os.path.basename(prefix)}.index cannot be read "
                                       f"({type(e).__name__}: damaged or not a checkpoint index)") from e
-    graph = _object_graph(reader, prefix)
+    keys = _saved_keys(reader, prefix)
+    # The saved node of each live object, as a restore pairs them (node id -> object).
+    node_of = {id(obj): node for node, obj in tf.train.CheckpointView(prefix).match(root).items()}
     saved_shapes, saved_dtypes = reader.get_variable_to_shape_map(), reader.get_variable_to_dtype_map()
     variables = _live_variables(root)
-    for path, names, variable in variables:
-        key = _checkpoint_key(graph, names)
+    for path, variable in variables:
+        key = keys.get(node_of.get(id(variable)))
         if key is None or key not in saved_shapes:
             raise CheckpointError(prefix, f"variable {path} is not in it (a checkpoint of another model or config?)")
         want_shape, got_shape = tuple(variable.shape), tuple(saved_shapes[key])
@@ -174,8 +163,8 @@ def newest_intact(root, checkpoint_dir: str, log_fn=print, move_damaged: bool = 
     """The newest checkpoint of `checkpoint_dir` that verifies against `root`; None when there is none at all.
 
     Damaged checkpoints newer than it are moved aside (logged), unless `move_damaged` is False (multi-worker
-    training: only the chief moves files, the other workers only skip them). When checkpoints exist and none verifies, raises
-    `CheckpointError` naming each with its reason and moves nothing.
+    training: only the chief moves files, the other workers only skip them). When checkpoints exist and none
+    verifies, raises `CheckpointError` naming each with its reason and moves nothing.
     """
     candidates = list_checkpoints(checkpoint_dir)
     damaged = []

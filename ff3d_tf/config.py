@@ -94,10 +94,9 @@ class DataConfig:
     remove_ground_below_z_m: float | None = None  # ground-removal study: drop points below this z (vehicle frame)
 
     def validate(self) -> None:
-        if not self.laser_names or any(n not in schema.ALL_LASERS for n in self.laser_names):
-            raise ConfigError(f"data.laser_names={self.laser_names}: each must be 1..5 (TOP..REAR)")
-        if not self.returns or any(r not in (1, 2) for r in self.returns):
-            raise ConfigError(f"data.returns={self.returns}: each must be 1 or 2")
+        problem = schema.lidar_selection_problem(self.laser_names, self.returns)
+        if problem is not None:
+            raise ConfigError(f"data.{problem}")
         if self.max_frame_gap_s <= 0:
             raise ConfigError(f"data.max_frame_gap_s={self.max_frame_gap_s}: must be > 0")
         _in_range("data.point_bucket_base", self.point_bucket_base, 1, MAX_BUCKET_BASE)

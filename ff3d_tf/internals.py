@@ -1,10 +1,29 @@
 """The framework internals this project relies on, behind one door.
 
-Everything here uses an API that its framework does not promise to keep (a private module, or a public module whose
-behaviour is undocumented). Each function names what it needs and why no public API serves; `tests/test_internals.py`
-exercises each one and names the versions it was checked on, so an upgrade that breaks one fails there, by name.
-TensorFlow and JAX are imported inside the functions: importing this module imports neither (the TensorFlow-free
-artifact runner, `ff3d_tf.inference.xla_artifact`, must stay so).
+Everything here uses an API that its framework does not promise to keep (a private module, a compatibility module
+kept for TF1 code, or a public module whose behaviour is undocumented). Each function names what it needs and why no
+public API serves; `CHECKED_ON` names the versions each was checked on, and `tests/test_internals.py` exercises each
+one and fails, by name, on any other version. TensorFlow and JAX are imported inside the functions: importing this
+module imports neither (the TensorFlow-free artifact runner, `ff3d_tf.inference.xla_artifact`, must stay so).
+
+TensorFlow (checked on tensorflow 2.21.0, with keras 3.15.1):
+  - `fused_batch_norm`: TensorFlow's fused batch normalisation kernel (FusedBatchNormV3 and its gradient), through
+    the TF1 compatibility API `tf.compat.v1.nn.fused_batch_norm`: TensorFlow 2's `tf.nn` has only the elementwise
+    `batch_normalization` (which Keras 3's BatchNormalization calls), and `tf.raw_ops.FusedBatchNormV3` is the bare
+    op without the wrapper's argument handling.
+  - `checkpoint_variable_keys`: the tensor key of each variable node of a checkpoint's object graph. The graph is a
+    `TrackableObjectGraph` proto whose Python class lives in `tensorflow.core.protobuf` (not under `tf.*`);
+    `tf.train.CheckpointView` parses it but exposes a node's children only, not its saved tensors.
+  - `checkpoint_reader`: a checkpoint's reader through `tf.compat.v1.train.NewCheckpointReader`: the TensorFlow 2
+    form, `tf.train.load_checkpoint`, takes a prefix on some filesystems (ram://) for a directory and looks for a
+    `checkpoint` state file there.
+  - `profiler_xspace`: the profiler's trace files (`*.xplane.pb`) as `XSpace` protos; the proto's Python class lives
+    in `tensorflow.tsl.profiler.protobuf` (TensorBoard's profile plugin reads the same files; no `tf.*` API does).
+
+Keras (checked on keras 3.15.1):
+  - `adam_slots`: a built Adam's first and second moments, one per weight in build order (`_momentums`,
+    `_velocities`). Keras has no public accessor: `optimizer.variables` lists them with the iteration count and the
+    learning rate, in an order it does not document. The training step (`ff3d_tf.model.step`) updates them.
 
 JAX (checked on jax/jaxlib 0.10.2 and, for loading what this writes, 0.11.2):
   - `hlo_to_jax_exported`: a serialized XLA HLO module (TensorFlow's `experimental_get_compiler_ir(stage=
@@ -17,6 +36,69 @@ from __future__ import annotations
 from typing import Sequence
 
 import numpy as np
+
+# function -> {distribution: version it was checked on}; `tests/test_internals.py` fails on any other installed one.
+CHECKED_ON = {
+    "fused_batch_norm": {"tensorflow": "2.21.0", "keras": "3.15.1"},
+    "checkpoint_variable_keys": {"tensorflow": "2.21.0", "keras": "3.15.1"},
+    "adam_slots": {"keras": "3.15.1"},
+    "checkpoint_reader": {"tensorflow": "2.21.0"},
+    "profiler_xspace": {"tensorflow": "2.21.0"},
+    "hlo_to_jax_exported": {"jax": "0.10.2", "jaxlib": "0.10.2"},
+}
+
+
+def adam_slots(optimizer) -> tuple[list, list]:
+    """(momentums, velocities) of a built `keras.optimizers.Adam`, one per weight in its build order."""
+    return list(optimizer._momentums), list(optimizer._velocities)  # private: see the module docstring
+
+
+# --- TensorFlow -------------------------------------------------------------------------------------------------
+
+def fused_batch_norm(x, scale, offset, *, epsilon: float, training: bool, mean=None, variance=None):
+    """Batch normalisation of NHWC `x` over its last axis as one fused kernel (FusedBatchNormV3), forward and backward.
+
+    training: normalises by the batch statistics; returns (y, batch mean, batch variance), the variance with Bessel's
+      correction n / (n - 1) (n = values per channel). Else by `mean` and `variance`; returns (y, mean, variance).
+    scale, offset (and mean, variance) [C] float32; y has the dtype of x (float32 or bfloat16).
+    """
+    # No TensorFlow 2 API runs this kernel (see the module docstring): the TF1 compatibility wrapper does.
+    import tensorflow as tf
+    if training:
+        return tf.compat.v1.nn.fused_batch_norm(x, scale, offset, epsilon=epsilon, data_format="NHWC",
+                                                is_training=True)
+    return tf.compat.v1.nn.fused_batch_norm(x, scale, offset, mean=mean, variance=variance, epsilon=epsilon,
+                                            data_format="NHWC", is_training=False)
+
+
+def checkpoint_reader(prefix: str):
+    """A `CheckpointReader` of the checkpoint at `prefix` (index and data files), read as given."""
+    import tensorflow as tf
+    return tf.compat.v1.train.NewCheckpointReader(prefix)  # see the module docstring
+
+
+def profiler_xspace(path: str):
+    """The `XSpace` proto of one profiler trace file (`*.xplane.pb`): planes, lines, events and event metadata."""
+    from tensorflow.tsl.profiler.protobuf import xplane_pb2  # private: see the module docstring
+    space = xplane_pb2.XSpace()
+    with open(path, "rb") as f:
+        space.ParseFromString(f.read())
+    return space
+
+
+def checkpoint_variable_keys(object_graph: bytes) -> dict[int, str]:
+    """{node id: tensor key of the variable's value} for the variable nodes of a checkpoint's serialized object graph
+    (its `_CHECKPOINTABLE_OBJECT_GRAPH` tensor; node ids as `tf.train.CheckpointView` numbers them). Raises (a
+    protobuf DecodeError) when the bytes are not an object graph."""
+    # The proto's class is TensorFlow-private (see the module docstring); `tf.train.CheckpointView` parses the same
+    # bytes but gives no node's tensor keys.
+    from tensorflow.core.protobuf import trackable_object_graph_pb2
+    graph = trackable_object_graph_pb2.TrackableObjectGraph.FromString(object_graph)
+    return {i: a.checkpoint_key for i, node in enumerate(graph.nodes) for a in node.attributes
+            if a.name == "VARIABLE_VALUE"}
+
+
+# --- JAX --------------------------------------------------------------------------------------------------------
 
 
 def _stablehlo_avals(stablehlo: bytes):

@@ -5,8 +5,8 @@ Decoded frame (`ff3d_tf.data.waymo.decode_frame`; one WOD `Frame`, N points of t
 | key              | dtype   | shape  | frame / unit                                                            |
 |------------------|---------|--------|-------------------------------------------------------------------------|
 | points_xyz       | float32 | [N,3]  | vehicle frame at the frame timestamp, metres                            |
-| intensity        | float32 | [N]    | WOD range image channel 1                                               |
-| elongation       | float32 | [N]    | WOD range image channel 2                                               |
+| intensity        | float32 | [N]    | WOD range image channel "intensity" (`RANGE_CHANNELS`)                  |
+| elongation       | float32 | [N]    | WOD range image channel "elongation"                                    |
 | flow_mps         | float32 | [N,3]  | vx, vy, vz in the vehicle frame of this frame, m/s, t-1 -> t0, ego-free  |
 | class_id         | int32   | [N]    | -1 no label, 0 background, 1 vehicle, 2 pedestrian, 3 sign, 4 cyclist   |
 | laser_name       | int32   | [N]    | 1 TOP, 2 FRONT, 3 SIDE_LEFT, 4 SIDE_RIGHT, 5 REAR                       |
@@ -33,9 +33,20 @@ Batched model input adds `point_mask_t0` [B,N0] and `point_mask_tm1` [B,N1] (Tru
 """
 from __future__ import annotations
 
-# WOD dataset.proto LaserName.
+# WOD dataset.proto LaserName; returns are ri_return1 and ri_return2 of a Laser.
 LASER_NAMES = {1: "TOP", 2: "FRONT", 3: "SIDE_LEFT", 4: "SIDE_RIGHT", 5: "REAR"}
 ALL_LASERS = (1, 2, 3, 4, 5)
+ALL_RETURNS = (1, 2)
+
+
+def lidar_selection_problem(laser_names, returns) -> str | None:
+    """What is wrong with a selection of lasers and returns ("laser_names=...: ..."), or None if it is usable."""
+    if not laser_names or any(n not in ALL_LASERS for n in laser_names):
+        return f"laser_names={tuple(laser_names)}: need one or more of {ALL_LASERS} (TOP..REAR)"
+    if not returns or any(r not in ALL_RETURNS for r in returns):
+        return f"returns={tuple(returns)}: need one or more of {ALL_RETURNS} (first, second return)"
+    return None
+
 
 # Flow class channel of range_image_flow_compressed (paper appendix "Dataset Format"); label.proto Type uses the same
 # numbers for the four object types.
@@ -59,7 +70,6 @@ STATS_MOVING_THRESHOLD_MPS = 0.1
 FRAME_KEYS = ("points_xyz", "intensity", "elongation", "flow_mps", "class_id", "laser_name", "pose",
               "timestamp_micros")
 
-PAIR_FLOAT_POINT_KEYS = ("points_xyz_t0", "point_features_t0", "flow_mps_t0")
 PAIR_T0_POINT_KEYS = ("points_xyz_t0", "point_features_t0", "flow_mps_t0", "class_id_t0")  # [N0, ...] per point
 PAIR_TM1_POINT_KEYS = ("points_xyz_tm1_in_t0", "point_features_tm1")  # [N1, ...] per point
 # What the model reads of a batched example (labels and poses are not model input).
@@ -68,7 +78,13 @@ MODEL_INPUT_KEYS = ("points_xyz_t0", "point_features_t0", "point_mask_t0", "poin
 PAIR_KEYS = ("points_xyz_t0", "point_features_t0", "points_xyz_tm1_in_t0", "point_features_tm1", "flow_mps_t0",
              "class_id_t0", "pose_t0", "pose_tm1", "num_points_t0", "num_points_tm1")
 
-# Range image channel layouts (dataset.proto comments; flow: paper appendix).
+# Range image channel layouts (dataset.proto comments; flow: paper appendix), and each channel's index by name.
 RANGE_CHANNELS = ("range", "intensity", "elongation", "is_in_nlz")
 FLOW_CHANNELS = ("vx", "vy", "vz", "class")
 TOP_POSE_CHANNELS = ("roll", "pitch", "yaw", "x", "y", "z")
+RANGE_CHANNEL = {name: i for i, name in enumerate(RANGE_CHANNELS)}
+FLOW_CHANNEL = {name: i for i, name in enumerate(FLOW_CHANNELS)}
+TOP_POSE_CHANNEL = {name: i for i, name in enumerate(TOP_POSE_CHANNELS)}
+FLOW_VELOCITY = slice(FLOW_CHANNEL["vx"], FLOW_CHANNEL["vz"] + 1)  # vx, vy, vz
+TOP_POSE_ROTATION = slice(TOP_POSE_CHANNEL["roll"], TOP_POSE_CHANNEL["yaw"] + 1)  # roll, pitch, yaw
+TOP_POSE_TRANSLATION = slice(TOP_POSE_CHANNEL["x"], TOP_POSE_CHANNEL["z"] + 1)  # x, y, z

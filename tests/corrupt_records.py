@@ -2,13 +2,13 @@
 
 Each `CASES` entry damages one valid serialized `Frame` (from the `tiny_records` fixture) one way and says which field
 the reader's error must name. `write_records` / `truncate_file` / `append_partial_record` build mixed and cut files.
-Random damage (bit flips, huge shapes, ...) lives in `ff3d_tf.data.fuzz`; these are the fixed, named cases.
+Random damage (bit flips, huge shapes, ...) lives in `ff3d_tf.fuzz`; these are the fixed, named cases.
 """
 import numpy as np
 from waymo_open_dataset import dataset_pb2
 
-from ff3d_tf.data.fuzz import write_records  # noqa: F401 - the same writer as the fuzzer's mixed files
 from ff3d_tf.data.wod_format import encode_matrix
+from ff3d_tf.fuzz.wod import write_records  # noqa: F401 - the same writer as the fuzzer's mixed files
 
 NOT_A_FRAME = b"\x0a\xff\xff\xff\x0fthis is not a frame"  # declares a 4 GB field
 GARBAGE = b"not a frame"

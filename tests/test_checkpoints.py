@@ -30,7 +30,7 @@ def saved_dir(tiny_config, tmp_path_factory):
     model_dir = tmp_path_factory.mktemp("ckpts") / "m"
     trainer = _trainer(tiny_config, model_dir)
     for n in (1, 2, 3):
-        trainer.step.assign(n)
+        trainer.global_step.assign(n)
         kernel = trainer.model.head_z.kernel
         kernel.assign(kernel + 0.01 * n)
         trainer.manager.save(checkpoint_number=n)
@@ -116,7 +116,7 @@ def test_no_intact_checkpoint_stops_without_touching_anything(tiny_config, model
                                               r".*ckpt-1: .*Nothing was moved or overwritten"):
         trainer.train(num_steps=5)
     assert sorted(os.listdir(model_dir / "checkpoints")) == before  # no damaged/, no new checkpoint
-    assert int(trainer.step.numpy()) == 0
+    assert int(trainer.global_step.numpy()) == 0
 
 
 def test_checkpoint_of_another_config_names_first_differing_variable(tiny_config, model_dir):

@@ -69,3 +69,13 @@ def test_replace_config_keeps_the_fields_it_does_not_name():
     changed = replace_config(base, {"model.zero_init_output": True})
     assert changed.model.zero_init_output and changed.model.point_feature_dim == 16
     assert changed.model.decoder_dims == ((24, 24), (24, 16), (16, 16)) and changed.train.learning_rate == 1e-3
+
+
+@pytest.mark.parametrize("laser_names,returns", [((1, 9), (1,)), ((1, 2), ())])
+def test_lidar_selection_rule_is_the_readers(laser_names, returns):
+    from ff3d_tf.data.wod_decode import DecodeOptions
+    with pytest.raises(ConfigError) as config_error:
+        load_config(None, [f"data.laser_names={list(laser_names)}", f"data.returns={list(returns)}"])
+    with pytest.raises(ValueError) as reader_error:
+        DecodeOptions(laser_names, returns)
+    assert str(config_error.value) == f"data.{reader_error.value}"

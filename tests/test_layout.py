@@ -35,7 +35,11 @@ def test_no_file_refers_outside_the_repository():
 
 def test_av2_sample_is_in_tree_with_its_notice():
     log = os.path.join(ROOT, "data", "av2_sample_log")
-    assert os.path.isfile(os.path.join(log, "NOTICE.md"))
+    with open(os.path.join(log, "NOTICE.md"), encoding="utf-8") as f:
+        notice = f.read()
+    # a licence notice: the licence, the attribution, the source commit and what the files are used for
+    for needed in ("CC BY-NC-SA 4.0", "Argo AI", "b7321d1f71f6ce0ecdd151f4f2b648338c191edd", "Use here"):
+        assert needed in notice, needed
     assert len(os.listdir(os.path.join(log, "sensors", "lidar"))) == 2
 
 

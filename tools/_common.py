@@ -31,7 +31,7 @@ def run(main) -> None:
     """Calls a tool's `main`; a bad input the project names (a damaged checkpoint, a bad record, an unusable
     config) ends the tool with that message and exit status 1 instead of a traceback."""
     from ff3d_tf.config import ConfigError
-    from ff3d_tf.data.waymo import FrameDecodeError
+    from ff3d_tf.data.wod_errors import FrameDecodeError
     from ff3d_tf.checkpoints import CheckpointError
     try:
         main()

@@ -4,12 +4,12 @@ python tools/benchmark_input.py --data_dir D --out input_benchmark.json [--frame
 """
 import argparse
 import json
-import time
 
 import _common  # noqa: F401
 import tensorflow as tf
 
-from ff3d_tf.data import waymo
+from ff3d_tf import bench
+from ff3d_tf.data import waymo, wod_decode
 from ff3d_tf.data.pairs import list_segment_files
 
 
@@ -24,25 +24,23 @@ def main():
     files = list_segment_files(args.data_dir)
     records = [r for _, r in waymo.iterate_records(files[0])][: args.frames]
     waymo.decode_frame(records[0])  # trace once
-    t = time.perf_counter()
-    n_ours = sum(len(waymo.decode_frame(r)["points_xyz"]) for r in records)
-    eager_s = time.perf_counter() - t
+    n_ours, eager_s = bench.elapsed(lambda: sum(len(waymo.decode_frame(r)["points_xyz"]) for r in records))
     # The tf.data path used in training: parallel in-graph decode.
     ds = tf.data.Dataset.from_tensor_slices(records).map(
-        lambda r: waymo.decode_frame_tensors(r, tf.constant("bench"), waymo.DecodeOptions())["points_xyz"],
+        lambda r: wod_decode.decode_frame_tensors(r, tf.constant("bench"), wod_decode.DecodeOptions())["points_xyz"],
         num_parallel_calls=tf.data.AUTOTUNE)
     next(iter(ds))  # trace and warm up
-    t = time.perf_counter()
-    n_tfdata = sum(1 for _ in ds)
-    tfdata_s = time.perf_counter() - t
-    t = time.perf_counter()
-    n_ref = 0
-    for r in records:
-        frame = dataset_pb2.Frame.FromString(r)
-        ri, cp, _, top_pose = frame_utils.parse_range_image_and_camera_projection(frame)
-        pts, _ = frame_utils.convert_range_image_to_point_cloud(frame, ri, cp, top_pose)
-        n_ref += sum(len(x) for x in pts)
-    official_s = time.perf_counter() - t
+    n_tfdata, tfdata_s = bench.elapsed(lambda: sum(1 for _ in ds))
+
+    def official_points():
+        n = 0
+        for r in records:
+            frame = dataset_pb2.Frame.FromString(r)
+            ri, cp, _, top_pose = frame_utils.parse_range_image_and_camera_projection(frame)
+            pts, _ = frame_utils.convert_range_image_to_point_cloud(frame, ri, cp, top_pose)
+            n += sum(len(x) for x in pts)
+        return n
+    n_ref, official_s = bench.elapsed(official_points)
     assert n_ref == n_ours and n_tfdata == len(records), (n_ref, n_ours, n_tfdata)
     n = len(records)
     result = {"frames": n, "points_per_frame": n_ours / n, "official_fps": n / official_s,

@@ -10,7 +10,7 @@ directory unless --data_dir is given):
                 and tf.data thread pools of that size);
   decode_count  decodes per epoch of `pairs.pair_dataset`, counted by a counter inside the decoder: one per frame,
                 although every frame but the first and last of a segment is in two pairs;
-  train_step    the trainer's step (`Trainer._train_step`, forward + backward + Adam) on one batch held in memory,
+  train_step    the trainer's step (`Trainer.step`, forward + backward + Adam) on one batch held in memory,
                 repeated: steps/s with no input cost, batch `train.global_batch_size` (set 1 for the paper's point
                 counts on a CPU);
   end_to_end    the same step fed by the real pipeline; input_bound_fraction = 1 - (in-memory step time / end-to-end
@@ -25,9 +25,10 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 
 import _common
+
+from ff3d_tf import bench
 
 
 def _args(argv=None):
@@ -62,15 +63,9 @@ def input_pairs_per_s(files, cfg, cores: int, batches: int) -> dict:
     options.threading.max_intra_op_parallelism = 1
     ds = training_dataset(files, cfg, cfg.train.global_batch_size).with_options(options)
     it = iter(ds)
-    start = time.perf_counter()
-    first = next(it)
-    first_batch_s = time.perf_counter() - start
-    points = []
-    start = time.perf_counter()
-    for _ in range(batches):
-        batch = next(it)
-        points.append(float(tf.reduce_mean(tf.cast(batch["num_points_t0"], tf.float32))))
-    elapsed = time.perf_counter() - start
+    first, first_batch_s = bench.elapsed(lambda: next(it))
+    points, elapsed = bench.elapsed(lambda: [float(tf.reduce_mean(tf.cast(next(it)["num_points_t0"], tf.float32)))
+                                             for _ in range(batches)])
     del first
     pairs = batches * cfg.train.global_batch_size
     return {"cores": cores, "pairs_per_s": pairs / elapsed, "pairs_timed": pairs, "first_batch_s": first_batch_s,
@@ -97,9 +92,9 @@ def count_decodes(files, cfg) -> dict:
     from unittest import mock
 
     import tensorflow as tf
-    from ff3d_tf.data import pairs, waymo
+    from ff3d_tf.data import pairs, waymo, wod_decode
     decodes = tf.Variable(0, dtype=tf.int64, trainable=False)
-    make_decoder = waymo._decoder  # the one decoder every frame goes through (traced once per process)
+    make_decoder = wod_decode.traced_decoder  # the one decoder every frame goes through (traced once per process)
 
     def counting_decoder(options):
         decode = make_decoder(options)
@@ -110,7 +105,7 @@ def count_decodes(files, cfg) -> dict:
         return counted
 
     frames = sum(1 for path in files for _ in waymo.iterate_records(path))
-    with mock.patch.object(waymo, "_decoder", counting_decoder):
+    with mock.patch.object(wod_decode, "traced_decoder", counting_decoder):
         num_pairs = sum(1 for _ in pairs.pair_dataset(files, cfg))
     return {"frames": frames, "pairs": num_pairs, "decodes": int(decodes.numpy()),
             "decodes_if_each_pair_decoded_both_frames": 2 * num_pairs,
@@ -118,16 +113,12 @@ def count_decodes(files, cfg) -> dict:
 
 
 def _time_steps(trainer, iterator, steps: int) -> dict:
-    start = time.perf_counter()
-    float(trainer._train_step(iterator).numpy())  # warm-up: trace and compile
-    warmup_s = time.perf_counter() - start
-    times = []
-    for _ in range(steps):
-        start = time.perf_counter()
-        float(trainer._train_step(iterator).numpy())
-        times.append(time.perf_counter() - start)
-    mean = sum(times) / len(times)
-    return {"steps": steps, "mean_step_s": mean, "steps_per_s": 1.0 / mean, "min_step_s": min(times),
+    """One warm-up step (tracing, compilation), then `steps` timed steps of `trainer.step` (loss fetched)."""
+    _, warmup_s = bench.elapsed(bench.fetched(lambda: trainer.step(iterator)))
+    ms = bench.summary([r["ms"] for r in bench.measure(bench.fetched(lambda: trainer.step(iterator)), steps)],
+                       ("mean", "min"))
+    mean = ms["mean_ms"] / 1e3
+    return {"steps": steps, "mean_step_s": mean, "steps_per_s": 1.0 / mean, "min_step_s": ms["min_ms"] / 1e3,
             "warmup_step_s": warmup_s}
 
 
@@ -174,11 +165,10 @@ def main(argv=None):
     cores = [int(c) for c in args.cores.split(",") if c]
     with tempfile.TemporaryDirectory() as tmp:
         if args.data_dir is None:
-            start = time.perf_counter()
             args.data_dir = os.path.join(tmp, "segments")
             os.makedirs(args.data_dir)
-            _synthetic_segments(args, args.data_dir)
-            print(f"made {args.segments} synthetic segments in {time.perf_counter() - start:.0f} s", flush=True)
+            _, seconds = bench.elapsed(lambda: _synthetic_segments(args, args.data_dir))
+            print(f"made {args.segments} synthetic segments in {seconds:.0f} s", flush=True)
         from ff3d_tf.data.pairs import list_segment_files
         files = list_segment_files(args.data_dir)
         result = {"config": args.config, "overrides": args.set, "batch_size": cfg.train.global_batch_size,

@@ -49,7 +49,8 @@ def main():
                                   reference=args.reference)
     except ValueError as e:
         p.error(str(e))
-    print(f"wrote {len(manifest['artifacts'])} forward and {len(manifest['train_artifacts'])} training-step artifacts and {xla_artifact.WEIGHTS_NAME} to {args.out}")
+    print(f"wrote {len(manifest['artifacts'])} forward and {len(manifest['train_artifacts'])} training-step artifacts "
+          f"and {xla_artifact.WEIGHTS_NAME} to {args.out}")
 
 
 if __name__ == "__main__":

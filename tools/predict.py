@@ -11,6 +11,7 @@ import tensorflow as tf
 
 from ff3d_tf import viz
 from ff3d_tf.data import pairs, waymo
+from ff3d_tf.data.wod_errors import MissingFlowLabelsError
 from ff3d_tf.inference.predictor import load_predictor
 
 
@@ -22,7 +23,7 @@ def _examples(args, cfg) -> tf.data.Dataset:
     try:
         waymo.decode_frame(first, laser_names=cfg.data.laser_names, source=args.input)
         inference_only = False
-    except waymo.MissingFlowLabelsError:
+    except MissingFlowLabelsError:
         inference_only = True
         print(f"{args.input}: no flow labels; predicting without ground truth", flush=True)
     return pairs.pair_dataset([args.input], cfg, inference_only=inference_only)

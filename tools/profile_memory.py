@@ -7,9 +7,10 @@ python tools/profile_memory.py --config configs/fastflow3d_waymo.yaml --out benc
 Every variant runs in fresh child processes (one training, one inference) with its own environment, set before Python
 starts, so allocator settings never leak from one variant into the next: the environment keys any variant sets are
 removed from the others', and every variant states TF_ONEDNN_USE_SYSTEM_ALLOCATOR explicitly. Training: the Trainer's
-own step (forward, backward, Adam; `Trainer._train_step`) on one batch of --points points held in memory, batch 1,
-one warm-up step (tracing, compilation) then --steps timed steps. Inference: the predictor's compiled forward
-(`compiled_forward`) at --points, two warm-up calls then --calls timed calls.
+own step (forward, backward, Adam; `Trainer.step`) on one batch of --points points (the benchmark cloud of
+`ff3d_tf.bench`) held in memory, batch 1, one warm-up step (tracing, compilation) then --steps timed steps.
+Inference: the predictor's compiled forward (`compiled_forward`) at --points, two warm-up calls then --calls timed
+calls.
 
 Per call: wall ms, CPU ms of the whole process (user + system, all threads: less moved by other load than wall time),
 system-CPU ms and minor page faults (fresh pages the kernel had to zero), resident set right after the call (what
@@ -21,16 +22,16 @@ files, [heap], anonymous executable = JIT code of XLA and oneDNN, other anonymou
 gc.collect() + glibc malloc_trim(0).
 """
 import argparse
-import ctypes
+import functools
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
-import time
 
 import _common
+
+from ff3d_tf import bench
 
 # name -> environment, config overrides, trim (glibc malloc_trim(0) after every call, inside its time), what it tests.
 # Every variant names TF_ONEDNN_USE_SYSTEM_ALLOCATOR, so that the caller's environment cannot decide it.
@@ -75,79 +76,7 @@ VARIANTS = {
     "xla_system_allocator": _v(_SYS, "compile mode xla, system allocator", ("model.compile=xla",)),
 }
 DEFAULT_VARIANTS = ",".join(VARIANTS)
-GB = 1e9
-
-
-class _MallInfo2(ctypes.Structure):
-    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
-                                                "fsmblks", "uordblks", "fordblks", "keepcost")]
-
-
-def _libc():
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallinfo2.restype = _MallInfo2
-        return libc
-    except (OSError, AttributeError):  # not glibc, or glibc < 2.33
-        return None
-
-
-def mallinfo2() -> dict | None:
-    """glibc's heap accounting, GB (counts for ordblks/hblks): arena = bytes the arenas got from the OS, uordblks
-    in use in them, fordblks free in them, hblkhd in live mmapped chunks (every chunk above the mmap threshold)."""
-    libc = _libc()
-    if libc is None:
-        return None
-    m = libc.mallinfo2()
-    return {k: (getattr(m, k) if k in ("ordblks", "smblks", "hblks") else getattr(m, k) / GB)
-            for k, _ in _MallInfo2._fields_}
-
-
-def proc_status(field: str) -> float:
-    """VmRSS, VmHWM (GB) or Threads of this process (Linux /proc)."""
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field + ":"):
-                v = int(line.split()[1])
-                return v if field == "Threads" else v * 1024 / GB
-    return float("nan")
-
-
-def smaps_by_kind() -> dict:
-    """Resident GB of this process's mappings by kind (/proc/self/smaps)."""
-    kinds, kind = {}, None
-    with open("/proc/self/smaps") as f:
-        for line in f:
-            parts = line.split()
-            if parts and "-" in parts[0] and not parts[0].endswith(":"):  # a mapping's header line
-                perms, name = parts[1], (parts[5] if len(parts) > 5 else "")
-                if name.startswith("/"):
-                    kind = "file_tensorflow" if "/tensorflow/" in name else "file_other"
-                elif name == "[heap]":
-                    kind = "heap"
-                elif name.startswith("["):
-                    kind = "other"  # [stack], [vdso], ...
-                else:
-                    kind = "anon_exec" if "x" in perms else "anon"
-            elif parts and parts[0] == "Rss:":
-                kinds[kind] = kinds.get(kind, 0.0) + int(parts[1]) * 1024 / GB
-    return kinds
-
-
-def smaps_rollup() -> dict:
-    """/proc/self/smaps_rollup's main totals, GB; {} where the kernel has none (Linux < 4.14: the per-kind sums of
-    `smaps_by_kind` still stand)."""
-    try:
-        with open("/proc/self/smaps_rollup") as f:
-            lines = f.readlines()
-    except OSError:
-        return {}
-    out = {}
-    for line in lines:
-        parts = line.split()
-        if len(parts) == 3 and parts[2] == "kB":
-            out[parts[0].rstrip(":")] = int(parts[1]) * 1024 / GB
-    return {k: out[k] for k in ("Rss", "Pss_Anon", "Pss_File", "Anonymous", "AnonHugePages") if k in out}
+GB = bench.GB
 
 
 def tf_memory_info() -> dict:
@@ -160,41 +89,18 @@ def tf_memory_info() -> dict:
 
 
 def snapshot() -> dict:
-    return {"rss_gb": proc_status("VmRSS"), "threads": proc_status("Threads"), "mallinfo2": mallinfo2(),
-            "smaps_gb": smaps_by_kind(), "smaps_rollup_gb": smaps_rollup()}
-
-
-def _reset_peak() -> bool:
-    """VmHWM := VmRSS (Linux >= 4.0), without trimming anything."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
+    """Resident set, threads, glibc's accounting and smaps of this process (`ff3d_tf.bench`'s readers)."""
+    return {"rss_gb": bench.proc_status("VmRSS"), "threads": bench.proc_status("Threads"),
+            "mallinfo2": bench.mallinfo2(), "smaps_gb": bench.smaps_by_kind(), "smaps_rollup_gb": bench.smaps_rollup()}
 
 
 def measure_calls(fn, calls: int, trim: bool = False) -> dict:
     """Runs `fn` (returning tensors) `calls` times: per call wall, CPU and system-CPU ms, minor faults, RSS after,
-    peak RSS during. `trim`: glibc malloc_trim(0) after each call, counted in its time."""
-    import tensorflow as tf
-    libc = _libc() if trim else None
-    rows = []
-    for _ in range(calls):
-        peak_reset = _reset_peak()
-        r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-        tf.nest.map_structure(lambda t: t.numpy(), fn())
-        if libc is not None:
-            libc.malloc_trim(0)
-        t1, r1 = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
-        rows.append({"ms": 1e3 * (t1 - t0),
-                     "cpu_ms": 1e3 * (r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime),
-                     "sys_ms": 1e3 * (r1.ru_stime - r0.ru_stime), "minor_faults": r1.ru_minflt - r0.ru_minflt,
-                     "rss_after_gb": proc_status("VmRSS"), "peak_rss_gb": proc_status("VmHWM"),
-                     "peak_reset": peak_reset})
+    peak RSS during (`bench.timed_with_usage`). `trim`: glibc malloc_trim(0) after each call, counted in its time."""
+    rows = bench.measure(bench.fetched(fn), calls, reading=functools.partial(bench.timed_with_usage, trim=trim))
 
     def med(k):
-        return float(sorted(r[k] for r in rows)[len(rows) // 2])
+        return bench.middle([r[k] for r in rows])
     return {"median_ms": med("ms"), "min_ms": min(r["ms"] for r in rows), "median_cpu_ms": med("cpu_ms"),
             "median_sys_ms": med("sys_ms"), "median_minor_faults": med("minor_faults"),
             "rss_between_gb": rows[-1]["rss_after_gb"], "peak_rss_gb": max(r["peak_rss_gb"] for r in rows),
@@ -206,42 +112,33 @@ def child(args) -> dict:
     import gc
 
     import numpy as np
-    import tensorflow as tf
-    from benchmark_latency import _example, _train_steppers
     from ff3d_tf.config import replace_config
-    from ff3d_tf.model.forward import compiled_forward, model_inputs
     from ff3d_tf.model import build_model
     from ff3d_tf.model import compile as compile_lib
+    from ff3d_tf.model.forward import compiled_forward
+    from ff3d_tf.training import bench_steps
 
     cfg = _common.load(args)
     mode = compile_lib.resolve_compile_mode(cfg.model.compile)
     rng = np.random.default_rng(0)
     out = {"compile_mode": mode, "tensorflow_imported": snapshot()}
     if args.child == "train":
-        example, padded = _example(rng, args.points, cfg, labels=True)
-        step = _train_steppers(cfg, {mode: mode}, example)[mode]  # the Trainer's step, batch 1
+        labelled, padded = bench_steps.example(cfg, rng, args.points, labels=True)
+        step = bench_steps.train_steps(cfg, {mode: mode}, labelled)[mode]  # the Trainer's step, batch 1
         out["built"] = {**snapshot(), "tf_allocator": tf_memory_info()}
-        t = time.perf_counter()
-        step().numpy()  # warm-up: tracing and compilation
-        out["warmup_s"] = time.perf_counter() - t
+        _, out["warmup_s"] = bench.elapsed(bench.fetched(step))  # tracing and compilation
         out["timed"] = measure_calls(step, args.steps, args.trim_after_call)
     else:
         model = build_model(replace_config(cfg, {"train.global_batch_size": 1}), mode)
         forward = compiled_forward(model, cfg.model.jit_compile)
-        inputs, padded = _example(rng, args.points, cfg)
-        inputs = model_inputs(inputs)
+        inputs, padded = bench_steps.example(cfg, rng, args.points)
         out["built"] = {**snapshot(), "tf_allocator": tf_memory_info()}
-        t = time.perf_counter()
-        for _ in range(2):
-            tf.nest.map_structure(lambda x: x.numpy(), forward(inputs))
-        out["warmup_s"] = time.perf_counter() - t
+        _, out["warmup_s"] = bench.elapsed(lambda: [bench.fetch(forward(inputs)) for _ in range(2)])
         out["timed"] = measure_calls(lambda: forward(inputs), args.calls, args.trim_after_call)
     out["padded_points"] = padded
     out["between_calls"] = {**snapshot(), "tf_allocator": tf_memory_info()}
     gc.collect()
-    libc = _libc()
-    if libc is not None:
-        libc.malloc_trim(0)
+    bench.malloc_trim()
     out["after_gc_and_malloc_trim"] = snapshot()
     return out
 
@@ -269,11 +166,11 @@ _TIMING = ("median_ms", "median_cpu_ms", "median_sys_ms", "median_minor_faults")
 
 
 def combine_rounds(rounds: list[dict]) -> dict:
-    """Per kind: the first round's memory readings, and each timing field's median over the rounds."""
+    """Per kind: the first round's memory readings, and each timing field's median over the rounds (`bench.middle`)."""
     out = {}
     for kind, first in rounds[0].items():
-        values = {k: sorted(r[kind][k] for r in rounds if kind in r) for k in _TIMING}
-        out[kind] = {**first, **{k: v[len(v) // 2] for k, v in values.items()}, "rounds": len(values["median_ms"])}
+        values = {k: [r[kind][k] for r in rounds if kind in r] for k in _TIMING}
+        out[kind] = {**first, **{k: bench.middle(v) for k, v in values.items()}, "rounds": len(values["median_ms"])}
     return out
 
 
@@ -330,8 +227,7 @@ def main(argv=None):
     if unknown:
         sys.exit(f"unknown variants {unknown}; known: {', '.join(VARIANTS)}")
     kinds = args.kinds.split(",")
-    with open("/proc/loadavg") as f:
-        load_start = f.read().split()[:3]
+    load_start = bench.load_average()
     again = args.repeat_variants.split(",") if args.repeat_variants else names
     if not set(again) <= set(names):
         sys.exit(f"--repeat_variants {again}: not all in --variants")
@@ -349,8 +245,7 @@ def main(argv=None):
                 f"ms (CPU {v['median_cpu_ms']:.0f} ms)" for k, v in r["rounds"][-1].items())
                 + "".join(f"; {k} failed: {m['error'][-300:]}" for k, m in measured.items() if "error" in m),
                 flush=True)
-    with open("/proc/loadavg") as f:
-        load_end = f.read().split()[:3]
+    load_end = bench.load_average()
     note = (f"Load average {' '.join(load_start)} at start, {' '.join(load_end)} at end, on {os.cpu_count()} CPUs "
             f"shared with other jobs: wall ms move with that load, CPU ms (user + system of the process) much less. "
             f"Measured per variant in fresh processes: the Trainer's step (forward, backward, Adam) on one in-memory "

@@ -15,25 +15,14 @@ import json
 import os
 import re
 import tempfile
-import time
 
 import _common
 import numpy as np
 import tensorflow as tf
 
+from ff3d_tf import bench, internals
 from ff3d_tf.model import build_model
-
-
-def _interleaved_ms(fns: dict, runs: int) -> dict:
-    for fn in fns.values():  # warm-up and compilation
-        tf.nest.map_structure(lambda t: t.numpy(), fn())
-    times = collections.defaultdict(list)
-    for _ in range(runs):
-        for name, fn in fns.items():
-            t = time.perf_counter()
-            tf.nest.map_structure(lambda t: t.numpy(), fn())
-            times[name].append(1e3 * (time.perf_counter() - t))
-    return {k: float(np.median(v)) for k, v in times.items()}
+from ff3d_tf.training import bench_steps
 
 
 def stage_times(model, inputs: dict, runs: int) -> dict:
@@ -46,7 +35,9 @@ def stage_times(model, inputs: dict, runs: int) -> dict:
     encoded = fns["encode/xla"](inputs)
     grid = fns["dense/graph"](encoded["bev_features"])
     args = {"encode": (inputs,), "dense": (encoded["bev_features"],), "decode": (grid, encoded)}
-    return _interleaved_ms({k: (lambda f=f, a=args[k.split("/")[0]]: f(*a)) for k, f in fns.items()}, runs)
+    calls = {k: bench.fetched(lambda f=f, a=args[k.split("/")[0]]: f(*a)) for k, f in fns.items()}
+    readings = bench.round_robin(calls, runs, warmup=1)
+    return {k: bench.summary([r["ms"] for r in rs], ("median",))["median_ms"] for k, rs in readings.items()}
 
 
 # Host events of the runtime and of tf.data (named like ops, but they contain the ops' time or the input's).
@@ -60,12 +51,9 @@ def top_ops(trace_dir: str, n: int = 12) -> list[tuple[str, float, float]]:
     Host events named "name:Type" are TensorFlow ops (counted by type); XLA's CPU runtime names its thunks after
     the HLO instruction (e.g. "convolution.12", "fusion.3"), counted by instruction kind.
     """
-    from tensorflow.tsl.profiler.protobuf import xplane_pb2
     totals = collections.Counter()
     for path in glob.glob(os.path.join(trace_dir, "**", "*.xplane.pb"), recursive=True):
-        space = xplane_pb2.XSpace()
-        with open(path, "rb") as f:
-            space.ParseFromString(f.read())
+        space = internals.profiler_xspace(path)
         for plane in space.planes:
             names = {k: v.name for k, v in plane.event_metadata.items()}
             for line in plane.lines:
@@ -92,29 +80,28 @@ def main():
     p.add_argument("--out", default=None)
     args = p.parse_args()
     cfg = _common.load(args)
-    from benchmark_latency import _example, _train_steppers  # the same inputs and training step as the benchmark
     model = build_model(cfg, "none")
     rng = np.random.default_rng(0)
     result = {"stages": {}, "top_ops": {}}
     for n in [int(v) for v in args.points.split(",")]:
-        inputs, _ = _example(rng, n, cfg)
+        inputs, _ = bench_steps.example(cfg, rng, n)
         result["stages"][str(n)] = stage_times(model, inputs, args.runs)
         print(f"{n} points: " + ", ".join(f"{k} {v:.0f} ms" for k, v in result["stages"][str(n)].items()),
               flush=True)
     if args.trace_dir:
         n = int(args.points.split(",")[0])
-        inputs, _ = _example(rng, n, cfg)
-        example, _ = _example(rng, n, cfg, labels=True)
+        inputs, _ = bench_steps.example(cfg, rng, n)
+        labelled, _ = bench_steps.example(cfg, rng, n, labels=True)
         modes = {m: m for m in args.profile_modes.split(",")}
-        steppers = _train_steppers(cfg, modes, example)
+        steppers = bench_steps.train_steps(cfg, modes, labelled)
         for mode in modes:
             m = build_model(cfg, mode)
             forward = tf.function(lambda x, m=m: m(x), reduce_retracing=True)
             for what, fn in (("forward", lambda: forward(inputs)), ("train_step", steppers[mode])):
-                tf.nest.map_structure(lambda t: t.numpy(), fn())  # compile outside the trace
+                bench.fetch(fn())  # compile outside the trace
                 logdir = tempfile.mkdtemp(prefix=f"{mode}_{what}_", dir=args.trace_dir)
                 tf.profiler.experimental.start(logdir)
-                tf.nest.map_structure(lambda t: t.numpy(), fn())
+                bench.fetch(fn())
                 tf.profiler.experimental.stop()
                 ops = top_ops(logdir)
                 result["top_ops"][f"{mode}/{what}"] = ops

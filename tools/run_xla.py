@@ -4,7 +4,7 @@ Loads DIR (written by tools/export_xla.py), compiles each artifact for the defau
 runs it on random clouds of its size and prints the median latency of --runs passes after --warmup, in a table beside
 the paper's P100 figures; then the training steps (--train_runs steps each), and, when DIR has TensorFlow's reference
 results, how far the device's are from them; --out writes the same as JSON. Imports numpy, JAX and the TensorFlow-free
-ff3d_tf.inference.xla_artifact only.
+ff3d_tf.inference.xla_artifact (format, loading) and xla_timing (timing, the table) only.
 """
 import argparse
 import json
@@ -13,7 +13,7 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from ff3d_tf.inference import xla_artifact  # noqa: E402
+from ff3d_tf.inference import xla_artifact, xla_timing  # noqa: E402
 
 
 def main():
@@ -39,14 +39,14 @@ def main():
                 json.dump(result, f, indent=1)
 
     try:
-        result = xla_artifact.run_export(args.export_dir, args.runs, args.warmup,
-                                         [v for v in args.precisions.split(",") if v], points, args.budget_s,
-                                         on_row=save, train_runs=args.train_runs)
+        result = xla_timing.run_export(args.export_dir, args.runs, args.warmup,
+                                       [v for v in args.precisions.split(",") if v], points, args.budget_s,
+                                       on_row=save, train_runs=args.train_runs)
     except xla_artifact.ExportFormatError as e:
         sys.exit(f"export error: {e}")
     if not result["latency"] and not result["train_step"] and not result["skipped"]:
         sys.exit(f"no artifact in {args.export_dir} matches --precisions {args.precisions!r} --points {args.points!r}")
-    result["table"] = xla_artifact.latency_table(result)
+    result["table"] = xla_timing.latency_table(result)
     print(result["table"], flush=True)
     save(result)
 

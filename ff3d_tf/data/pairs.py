@@ -16,6 +16,7 @@ import tensorflow as tf
 from ff3d_tf import geometry, schema
 from ff3d_tf.config import ABLATED_CLASSES, ExperimentConfig
 from ff3d_tf.data import waymo
+from ff3d_tf.data.wod_decode import DecodeOptions
 
 # Bucket sizes are base * {1, 1.5, 2, 3, 4, 6, 8, 12, ...}: at most 50% padding, ~2 buckets per doubling.
 _BUCKET_MULTIPLIERS = np.array(sorted({m * 2 ** k for k in range(0, 14) for m in (1.0, 1.5)}))
@@ -45,8 +46,8 @@ def list_segment_files(data_dir_or_glob: str) -> list[str]:
     return files
 
 
-def decode_options(cfg: ExperimentConfig, inference_only: bool = False) -> waymo.DecodeOptions:
-    return waymo.DecodeOptions(tuple(cfg.data.laser_names), tuple(cfg.data.returns), not inference_only)
+def decode_options(cfg: ExperimentConfig, inference_only: bool = False) -> DecodeOptions:
+    return DecodeOptions(tuple(cfg.data.laser_names), tuple(cfg.data.returns), not inference_only)
 
 
 def make_pair(frame_tm1: dict, frame_t0: dict, cfg: ExperimentConfig, seed=None) -> dict:
@@ -71,12 +72,8 @@ def make_pair(frame_tm1: dict, frame_t0: dict, cfg: ExperimentConfig, seed=None)
     return ex
 
 
-T0_POINT_KEYS = schema.PAIR_T0_POINT_KEYS
-TM1_POINT_KEYS = schema.PAIR_TM1_POINT_KEYS
-
-
 def _keep(ex: dict, keep_t0, keep_tm1) -> dict:
-    return {k: tf.boolean_mask(v, keep_t0 if k in T0_POINT_KEYS else keep_tm1) for k, v in ex.items()}
+    return {k: tf.boolean_mask(v, keep_t0 if k in schema.PAIR_T0_POINT_KEYS else keep_tm1) for k, v in ex.items()}
 
 
 def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
@@ -108,7 +105,7 @@ def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
 
 
 @contextlib.contextmanager
-def input_errors_named(files: list[str], options: waymo.DecodeOptions | None = None):
+def input_errors_named(files: list[str], options: DecodeOptions | None = None):
     """Turns a decoding error of the input pipeline over `files` into a FrameDecodeError naming file, record and
     field (`waymo.pipeline_error`; `options` as the pipeline decodes, see `decode_options`); any other error passes
     unchanged."""
@@ -133,7 +130,7 @@ def consecutive_frames(frames: tf.data.Dataset) -> tf.data.Dataset:
     """(frame t-1, frame t0) of each two consecutive frames, by a scan that carries the previous frame.
 
     Not `Dataset.window`: a window ends silently when its input fails on its first element, so a file truncated
-    inside its first records gave no pairs and no error (found by `ff3d_tf.data.fuzz`).
+    inside its first records gave no pairs and no error (found by `ff3d_tf.fuzz`).
     """
     none = {k: tf.zeros([d or 0 for d in spec.shape.as_list()], spec.dtype) for k, spec in frames.element_spec.items()}
 
@@ -175,7 +172,8 @@ def padded_singletons(ds: tf.data.Dataset, bucket_base: int):
     input without a tf.data pipeline per example."""
     for batch in batch_examples(ds, 1, bucket_base).prefetch(2):
         n, n_tm1 = int(batch["num_points_t0"][0]), int(batch["num_points_tm1"][0])
-        yield batch, {k: v[0, :n] if k in T0_POINT_KEYS else v[0, :n_tm1] if k in TM1_POINT_KEYS else v[0]
+        length = {**dict.fromkeys(schema.PAIR_T0_POINT_KEYS, n), **dict.fromkeys(schema.PAIR_TM1_POINT_KEYS, n_tm1)}
+        yield batch, {k: v[0, :length[k]] if k in length else v[0]
                       for k, v in batch.items() if not k.startswith("point_mask_")}
 
 
@@ -185,7 +183,7 @@ def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_
 
     def pad(batch):
         out = dict(batch)
-        for suffix, keys in (("t0", T0_POINT_KEYS), ("tm1", TM1_POINT_KEYS)):
+        for suffix, keys in (("t0", schema.PAIR_T0_POINT_KEYS), ("tm1", schema.PAIR_TM1_POINT_KEYS)):
             n = tf.shape(batch[keys[0]])[1]
             target = bucket_size_tf(n, bucket_base)
             for k in keys:

@@ -89,7 +89,7 @@ def rotation_from_rpy(roll, pitch, yaw) -> np.ndarray:
 @dataclasses.dataclass(frozen=True)
 class ArrayOps:
     """The few array operations the polar geometry needs, so the same formulas serve NumPy (writers, tests) and
-    TensorFlow graphs (the reader: `ff3d_tf.data.waymo.TF_OPS`) without this module importing TensorFlow."""
+    TensorFlow graphs (the reader: `ff3d_tf.data.wod_decode.TF_OPS`) without this module importing TensorFlow."""
 
     to_f64: Callable  # scalar or array -> float64
     arange_f64: Callable  # n -> [0, 1, ..., n-1] float64
@@ -146,6 +146,15 @@ def rotate_rpy(rpy, xyz, ops: ArrayOps = NUMPY_OPS):
 _WIRE_OF_TYPE = {1: 1, 6: 1, 16: 1,  # double, fixed64, sfixed64
                  2: 5, 7: 5, 15: 5,  # float, fixed32, sfixed32
                  9: 2, 11: 2, 12: 2}  # string, message, bytes; every other type (ints, bool, enum) is a varint (0)
+# descriptor.proto FieldDescriptorProto: Type TYPE_MESSAGE, Label LABEL_REPEATED.
+_TYPE_MESSAGE, _LABEL_REPEATED = 11, 3
+
+
+def is_repeated(field) -> bool:
+    """Whether a protobuf FieldDescriptor is repeated: its `is_repeated` where it has one (protobuf 7 removed
+    `label`), else its `label`."""
+    repeated = getattr(field, "is_repeated", None)
+    return bool(repeated) if repeated is not None else field.label == _LABEL_REPEATED
 
 
 def _varint_at(data, pos: int) -> tuple[int, int]:
@@ -227,11 +236,11 @@ def malformed_field(data, descriptor, recurse_into: tuple[str, ...], path: str =
         if field is None:
             continue  # unknown fields are legal and skipped
         expected = _WIRE_OF_TYPE.get(field.type, 0)
-        repeated = field.label == field.LABEL_REPEATED
+        repeated = is_repeated(field)
         where = f"{path}.{field.name}" if path else field.name
         if wire != expected and not (repeated and wire == 2 and expected != 2):
             return where, f"wire type {wire} where {descriptor.name}.{field.name} needs {expected}"
-        if field.type == field.TYPE_MESSAGE and field.message_type.name in recurse_into:
+        if field.type == _TYPE_MESSAGE and field.message_type.name in recurse_into:
             if repeated:
                 k = counts[field.name] = counts.get(field.name, -1) + 1
                 where = f"{where}[{_entry_name(value, field.message_type) or k}]"

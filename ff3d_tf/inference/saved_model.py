@@ -9,8 +9,8 @@ per bucket.
 Inputs are checked inside the signature (so every client gets the same rules) and again, with a Python error, by
 `SavedModelPredictor`:
 - each pose must be a rigid transform: all 16 entries finite, bottom row [0, 0, 0, 1] and a rotation R with
-  max |R^T R - I| <= `geometry.POSE_RIGIDITY_TOLERANCE` and det R > 0; else `InvalidArgumentError` (signature) or `ValueError`
-  (predictor) naming `pose_tm1` or `pose_t0` and the rule broken;
+  max |R^T R - I| <= `geometry.POSE_RIGIDITY_TOLERANCE` and det R > 0; else `InvalidArgumentError` (signature) or
+  `ValueError` (predictor) naming `pose_tm1` or `pose_t0` and the rule broken;
 - points with a NaN/Inf coordinate or feature are not errors: they are masked like points outside the grid
   (`point_valid` false, flow 0);
 - dtype, rank and width are fixed by the signature ([N,5] float32 clouds, [4,4] float64 poses); N may be 0.
@@ -37,7 +37,9 @@ class FlowServingModule(tf.Module):
         super().__init__()
         self.model = model
         self.bucket_base = int(bucket_base)
-        self._infer = tf.function(lambda inputs: model(inputs, training=False), jit_compile=jit_compile)
+        inline = bool(jit_compile)  # the whole forward in this XLA program: the model's stages inline
+        self._infer = tf.function(lambda inputs: model(inputs, training=False, inline_stages=inline),
+                                  jit_compile=jit_compile)
 
     def _pad(self, points, n):
         target = bucket_size_tf(n, self.bucket_base)
@@ -70,8 +72,8 @@ def export_saved_model(model: FastFlow3D, path: str, bucket_base: int, jit_compi
 class SavedModelPredictor:
     """Calls a SavedModel's serving signature; raises a clear `ValueError` naming the argument on bad input.
 
-    Wrong dtype, rank or width, and poses that are not rigid transforms (`geometry.pose_problem_np`), fail here before the call.
-    One instance may be called from several threads at once (the loaded function holds no per-call state).
+    Wrong dtype, rank or width, and poses that are not rigid transforms (`geometry.pose_problem_np`), fail here before
+    the call. One instance may be called from several threads at once (the loaded function holds no per-call state).
     """
 
     _SPECS = {"points_tm1": (tf.float32, (None, 5)), "points_t0": (tf.float32, (None, 5)),

@@ -35,9 +35,8 @@ from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data.pairs import bucket_size
 from ff3d_tf.inference import xla_artifact
 from ff3d_tf.model import build_model
-from ff3d_tf.model.fastflow3d import INPUT_KEYS
-from ff3d_tf.model.losses import batch_flow_loss
-from ff3d_tf.training.trainer import learning_rate_schedule, make_optimizer
+from ff3d_tf.model import step as step_lib
+from ff3d_tf.schema import MODEL_INPUT_KEYS
 
 OUTPUT_KEYS = ("flow_mps", "point_valid")
 TRAIN_LABEL_KEYS = xla_artifact.TRAIN_LABEL_KEYS
@@ -45,12 +44,12 @@ PLATFORMS = ("cpu", "cuda")
 
 
 def input_specs(batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
-    """The six model inputs of one bucket, in `INPUT_KEYS` order (see `ff3d_tf.model.fastflow3d`)."""
+    """The six model inputs of one bucket, in `MODEL_INPUT_KEYS` order (`ff3d_tf.schema`)."""
     b, p = batch_size, padded_points
     shapes = {"points_xyz_t0": ([b, p, 3], tf.float32), "point_features_t0": ([b, p, 2], tf.float32),
               "point_mask_t0": ([b, p], tf.bool), "points_xyz_tm1_in_t0": ([b, p, 3], tf.float32),
               "point_features_tm1": ([b, p, 2], tf.float32), "point_mask_tm1": ([b, p], tf.bool)}
-    return [tf.TensorSpec(*shapes[k], name=k) for k in INPUT_KEYS]
+    return [tf.TensorSpec(*shapes[k], name=k) for k in MODEL_INPUT_KEYS]
 
 
 def label_specs(batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
@@ -85,7 +84,8 @@ def forward_hlo(model, batch_size: int, padded_points: int, tf32: bool = False) 
 
     def forward(*flat):
         outputs, _ = model.stateless_call(list(flat[:num_trainable]), list(flat[num_trainable:num_weights]),
-                                          dict(zip(INPUT_KEYS, flat[num_weights:])), training=False)
+                                          dict(zip(MODEL_INPUT_KEYS, flat[num_weights:])), training=False,
+                                          inline_stages=True)
         return tuple(outputs[k] for k in OUTPUT_KEYS)
 
     specs = [tf.TensorSpec(v.shape, v.dtype) for v in model_weights(model)] + input_specs(batch_size, padded_points)
@@ -95,55 +95,29 @@ def forward_hlo(model, batch_size: int, padded_points: int, tf32: bool = False) 
 
 
 def train_step_fn(cfg: ExperimentConfig, model, batch_size: int):
-    """The Trainer's step (`ff3d_tf.training.trainer`) as a function of tensors only, for one device's batch:
+    """The training step (`ff3d_tf.model.step`, the Trainer's) as a function of flat tensors, for one device's batch
+    that is the whole global batch, to be compiled whole with XLA:
 
       (weights..., bn_statistics..., adam_m..., adam_v..., iterations (int32: JAX without x64), six inputs, flow_mps_t0, class_id_t0)
         -> (new weights..., new bn_statistics..., new adam_m..., new adam_v..., new iterations, loss, grad_norm)
 
     weights = `model.trainable_variables` order, bn_statistics = `model.non_trainable_variables`; adam_m / adam_v one
-    per weight. Same loss (`batch_flow_loss`, the batch being the whole global batch), optional global-norm clipping
-    and non-finite skip (nothing changes, iterations included) as the Trainer. The update is Keras 3's Adam
-    (`keras.optimizers.Adam.update_step`: m += (g - m)(1 - b1), v += (g^2 - v)(1 - b2),
-    w -= m * lr sqrt(1 - b2^t) / (1 - b1^t) / (sqrt(v) + eps), t = iterations + 1), written out because Keras'
-    `stateless_apply` is unavailable on the TensorFlow backend; the tests check it against the optimizer itself.
+    per weight (the order of `ff3d_tf.model.step.TrainState`). Loss, optional global-norm clipping, Keras' Adam and
+    the non-finite skip (nothing changes, iterations included) are the Trainer's; grad_norm is taken before clipping.
     """
     num_weights, num_stats = len(model.trainable_variables), len(model.non_trainable_variables)
-    optimizer = make_optimizer(cfg)
-    beta_1, beta_2, epsilon = optimizer.beta_1, optimizer.beta_2, optimizer.epsilon
-    schedule = learning_rate_schedule(cfg)
-    clip_norm = cfg.train.grad_clip_norm
+    layout = step_lib.TrainState([0] * num_weights, [0] * num_stats, [0] * num_weights, [0] * num_weights, 0)
+    num_state = len(tf.nest.flatten(layout))
+    train_step = step_lib.train_step_fn(cfg, step_lib.loss_and_grads_fn(cfg, model, batch_size, inline_stages=True))
 
-    def step(*flat):
-        weights = list(flat[:num_weights])
-        stats = list(flat[num_weights:num_weights + num_stats])
-        m = list(flat[num_weights + num_stats:2 * num_weights + num_stats])
-        v = list(flat[2 * num_weights + num_stats:3 * num_weights + num_stats])
-        iterations = flat[3 * num_weights + num_stats]
-        batch = dict(zip(INPUT_KEYS + TRAIN_LABEL_KEYS, flat[3 * num_weights + num_stats + 1:]))
+    def flat_step(*flat):
+        state = tf.nest.pack_sequence_as(layout, list(flat[:num_state]))
+        batch = dict(zip(MODEL_INPUT_KEYS + TRAIN_LABEL_KEYS, flat[num_state:]))
         batch["point_mask_t0"] = tf.cast(batch["point_mask_t0"], tf.bool)
-        with tf.GradientTape() as tape:
-            tape.watch(weights)
-            outputs, new_stats = model.stateless_call(weights, stats, {k: batch[k] for k in INPUT_KEYS},
-                                                      training=True)
-            loss = batch_flow_loss(batch, outputs, cfg.train.background_weight, batch_size)
-        grads = tape.gradient(loss, weights)
-        grad_norm = tf.linalg.global_norm(grads)
-        if clip_norm is not None:
-            grads, _ = tf.clip_by_global_norm(grads, clip_norm, use_norm=grad_norm)
-        lr = tf.cast(schedule(iterations) if callable(schedule) else schedule, tf.float32)
-        t = tf.cast(iterations + 1, tf.float32)
-        alpha = lr * tf.sqrt(1.0 - tf.pow(beta_2, t)) / (1.0 - tf.pow(beta_1, t))
-        new_m = [mi + (g - mi) * (1.0 - beta_1) for mi, g in zip(m, grads)]
-        new_v = [vi + (tf.square(g) - vi) * (1.0 - beta_2) for vi, g in zip(v, grads)]
-        new_weights = [w - mi * alpha / (tf.sqrt(vi) + epsilon) for w, mi, vi in zip(weights, new_m, new_v)]
-        finite = tf.math.is_finite(loss) & tf.math.is_finite(grad_norm)
+        result = train_step(state, batch)
+        return (*tf.nest.flatten(result.state), result.loss, result.grad_norm)
 
-        def keep_if_finite(new, old):
-            return [tf.where(finite, a, b) for a, b in zip(new, old)]
-        return (*keep_if_finite(new_weights, weights), *keep_if_finite(new_stats, stats), *keep_if_finite(new_m, m),
-                *keep_if_finite(new_v, v), tf.where(finite, iterations + 1, iterations), loss, grad_norm)
-
-    return step
+    return flat_step
 
 
 def train_step_specs(model, batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
@@ -190,8 +164,9 @@ def _reference(cfg, model, manifest: dict, rng: np.random.Generator) -> dict:
     forward = next((e for e in manifest["artifacts"] if e["precision"] == "float32"), None)
     if forward is not None:
         inputs = xla_artifact.random_inputs(manifest, forward, rng)
-        out = tf.function(lambda x: model(x, training=False), jit_compile=True)(dict(zip(INPUT_KEYS, inputs)))
-        arrays.update({f"forward/{k}": a for k, a in zip(INPUT_KEYS, inputs)})
+        out = tf.function(lambda x: model(x, training=False, inline_stages=True), jit_compile=True)(
+            dict(zip(MODEL_INPUT_KEYS, inputs)))
+        arrays.update({f"forward/{k}": a for k, a in zip(MODEL_INPUT_KEYS, inputs)})
         arrays.update({f"forward/out/{k}": out[k].numpy() for k in OUTPUT_KEYS})
         arrays["forward/padded_points"] = np.int64(forward["padded_points"])
     train = next((e for e in manifest["train_artifacts"] if e["precision"] == "float32"), None)
@@ -201,7 +176,7 @@ def _reference(cfg, model, manifest: dict, rng: np.random.Generator) -> dict:
         state = xla_artifact.initial_train_state([v.numpy() for v in model_weights(model)], manifest)
         with _tensor_float_32(False):
             results = tf.function(train_step_fn(cfg, model, b), jit_compile=True)(*state, *batch)
-        arrays.update({f"train/{k}": a for k, a in zip(INPUT_KEYS + TRAIN_LABEL_KEYS, batch)})
+        arrays.update({f"train/{k}": a for k, a in zip(MODEL_INPUT_KEYS + TRAIN_LABEL_KEYS, batch)})
         arrays["train/out/loss"], arrays["train/out/grad_norm"] = results[-2].numpy(), results[-1].numpy()
         arrays["train/batch_size"], arrays["train/padded_points"] = np.int64(b), np.int64(p)
     return arrays
@@ -241,7 +216,7 @@ def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir:
         "grid": {"num_pillars_x": g.num_pillars_x, "num_pillars_y": g.num_pillars_y, "x_range_m": list(g.x_range_m),
                  "y_range_m": list(g.y_range_m), "z_range_m": list(g.z_range_m)},
         "params": int(model.count_params()),
-        "input_keys": list(INPUT_KEYS), "output_keys": list(OUTPUT_KEYS), "train_label_keys": list(TRAIN_LABEL_KEYS),
+        "input_keys": list(MODEL_INPUT_KEYS), "output_keys": list(OUTPUT_KEYS), "train_label_keys": list(TRAIN_LABEL_KEYS),
         "weights": [{"path": v.path, "shape": list(v.shape), "dtype": str(v.dtype)} for v in weights],
         "num_trainable": len(model.trainable_variables),
         "artifacts": [], "train_artifacts": [],

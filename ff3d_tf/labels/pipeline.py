@@ -3,8 +3,9 @@
 One Beam element per segment file: its frames are read in order, every selected lidar/return gets flow from the
 frame's `laser_labels` and the previous frame's (`ff3d_tf.labels.box_flow.bootstrap_flow`), and the frames are written
 again with `range_image_flow_compressed` filled in the release's format ([H,W,4]: vx, vy, vz in m/s, class), so the
-reader and training take them unchanged. Points in no-label zones (range image channel 3 > 0) get class -1; pixels
-without a return hold zeros and class -1. The first frame of a segment has no t-1 boxes: its object points get class -1.
+reader and training take them unchanged. Points in no-label zones (range image channel is_in_nlz > 0) get class -1;
+pixels without a return hold zeros and class -1. The first frame of a segment has no t-1 boxes: its object points get
+class -1.
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import numpy as np
 from ff3d_tf import schema
 from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow
 from ff3d_tf.data import waymo
+from ff3d_tf.data.wod_decode import DecodeOptions
 from ff3d_tf.data.wod_format import encode_matrix
 from ff3d_tf.parallel import ordered_map
 
@@ -44,9 +46,8 @@ def keep_freed_memory() -> bool:
     return bool(libc.mallopt(m_mmap_threshold, 32 << 20) and libc.mallopt(m_trim_threshold, 1 << 30))
 
 
-def decode_options(laser_names=schema.ALL_LASERS, returns=(1, 2)) -> waymo.DecodeOptions:
-    return waymo.DecodeOptions(tuple(sorted(laser_names)), tuple(sorted(returns)), require_flow=False,
-                               with_pixels=True)
+def decode_options(laser_names=schema.ALL_LASERS, returns=(1, 2)) -> DecodeOptions:
+    return DecodeOptions(tuple(sorted(laser_names)), tuple(sorted(returns)), require_flow=False, with_pixels=True)
 
 
 def annotate_frame(frame, decoded: dict, prev: tuple | None, laser_names=schema.ALL_LASERS, returns=(1, 2),
@@ -75,9 +76,9 @@ def annotate_frame(frame, decoded: dict, prev: tuple | None, laser_names=schema.
     counts["no_label_zone_points"] = int(nlz.sum())
     for c, name in schema.CLASS_NAMES.items():
         counts[name] = int(per_class[c + 1])
-    labels = np.empty((len(cls), 4), np.float32)  # one row per point: vx, vy, vz, class (the image's channels)
-    labels[:, :3] = flow
-    labels[:, 3] = cls
+    labels = np.empty((len(cls), len(schema.FLOW_CHANNELS)), np.float32)  # one row per point: the image's channels
+    labels[:, schema.FLOW_VELOCITY] = flow
+    labels[:, schema.FLOW_CHANNEL["class"]] = cls
     lasers = {laser.name: laser for laser in frame.lasers}
     shapes = iter(decoded["range_image_hw"])  # decoder order: sorted lasers, then sorted returns
     # Points come ordered by laser, then return: each range image's points are one contiguous slice.
@@ -92,7 +93,7 @@ def annotate_frame(frame, decoded: dict, prev: tuple | None, laser_names=schema.
                 continue
             image = _empty_flow_array(height, width).copy()
             rc = decoded["pixel_row_col"][lo:hi]
-            image.reshape(-1, 4)[rc[:, 0] * width + rc[:, 1]] = labels[lo:hi]
+            image.reshape(-1, len(schema.FLOW_CHANNELS))[rc[:, 0] * width + rc[:, 1]] = labels[lo:hi]
             ri.range_image_flow_compressed = encode_matrix(image)
     return frame.SerializeToString(), counts
 
@@ -100,8 +101,8 @@ def annotate_frame(frame, decoded: dict, prev: tuple | None, laser_names=schema.
 @functools.lru_cache(maxsize=16)
 def _empty_flow_array(height: int, width: int) -> np.ndarray:
     """Flow image of a range image without returns: zeros, class -1 (read-only; copy before writing)."""
-    image = np.zeros((height, width, 4), np.float32)
-    image[..., 3] = schema.CLASS_NO_LABEL
+    image = np.zeros((height, width, len(schema.FLOW_CHANNELS)), np.float32)
+    image[..., schema.FLOW_CHANNEL["class"]] = schema.CLASS_NO_LABEL
     image.flags.writeable = False
     return image
 
@@ -112,7 +113,7 @@ def _empty_flow_image(height: int, width: int) -> bytes:
     return encode_matrix(_empty_flow_array(height, width))
 
 
-def _frames_to_label(in_path: str, options: waymo.DecodeOptions, skip_bad_records: bool, stats: waymo.ReadStats):
+def _frames_to_label(in_path: str, options: DecodeOptions, skip_bad_records: bool, stats: waymo.ReadStats):
     """(index, Frame, decoded, boxes, prev) per decoded record, in file order; `prev` is the previous frame's
     (boxes, pose, timestamp), or None after a skipped record (that frame has no valid t-1)."""
     from waymo_open_dataset import dataset_pb2

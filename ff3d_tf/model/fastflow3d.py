@@ -21,12 +21,9 @@ from ff3d_tf import schema
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.model import layers as L
+from ff3d_tf.model import ops
 
 _LOG = logging.getLogger(__name__)
-
-POINT_CHUNK = L.POINT_CHUNK  # the model's point chunk (tests set a small one here)
-
-INPUT_KEYS = schema.MODEL_INPUT_KEYS
 
 
 @keras.saving.register_keras_serializable(package="ff3d_tf")
@@ -40,14 +37,15 @@ class FastFlow3D(keras.Model):
       "hybrid" the two point stages as their own XLA programs, the dense stages as TensorFlow graph kernels (oneDNN
                on CPU), which are faster than XLA's convolutions there;
       "none"   no XLA.
-    Eager calls run op by op in every mode, and a call traced inside a caller's XLA program is traced inline (one
-    program, whatever the mode). `ff3d_tf.model.compile` resolves the config's "auto".
+    Eager calls run op by op in every mode, and a caller that compiles the whole call with XLA passes
+    `inline_stages=True` (one program, whatever the mode). `ff3d_tf.model.compile` resolves the config's "auto".
+    `point_chunk_size`: points (over the flattened batch) that the point encoder encodes and scatters at a time.
     """
 
-    # Keyword-only and without defaults: the paper's values live in `ff3d_tf.config` alone (`model_kwargs`).
+    # Keyword-only, the paper's values without defaults: they live in `ff3d_tf.config` alone (`model_kwargs`).
     def __init__(self, *, num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, point_feature_dim,
                  encoder_widths, encoder_depths, decoder_dims, head_hidden_dim, zero_init_output=False,
-                 compile_mode="none", **kwargs):
+                 compile_mode="none", point_chunk_size=ops.POINT_CHUNK, **kwargs):
         super().__init__(**kwargs)
         self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
         self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
@@ -58,12 +56,13 @@ class FastFlow3D(keras.Model):
         self.head_hidden_dim = int(head_hidden_dim)
         self.zero_init_output = bool(zero_init_output)
         self.compile_mode = compile_lib.check_resolved(compile_mode)
+        self.point_chunk_size = int(point_chunk_size)
 
         # Pillar indices and offsets always in float32 (a bfloat16 x would move points across pillars).
         self.pillarize = L.Pillarize(num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, name="pillarize",
                                      dtype="float32")
         self.point_encoder = L.PointEncoder(self.point_feature_dim, self.num_pillars_x, self.num_pillars_y,
-                                            chunk_size=POINT_CHUNK, name="A")
+                                            chunk_size=self.point_chunk_size, name="A")
         letters = iter(string.ascii_uppercase[2:] + "".join(f"E{i}" for i in range(100)))
         # Every layer is also a plain attribute (conv_C, ..., upsample_S, ...): TF checkpoints track attributes, not
         # the Keras-tracked lists below, so optimizer state and weights round-trip through tf.train.Checkpoint.
@@ -109,12 +108,11 @@ class FastFlow3D(keras.Model):
         self.head_z.build((None, None, self.head_hidden_dim))
         self.built = True
 
-    def call(self, inputs, training=False, inline_stages=None):
-        """`inline_stages=True`: the caller compiles this whole call with XLA (`tf.function(jit_compile=True)`), so
-        the stages are traced inline as plain ops, whatever `compile_mode` (None: found out from the trace)."""
-        inputs = {k: inputs[k] for k in INPUT_KEYS}
-        if inline_stages is None:
-            inline_stages = compile_lib.in_xla_context()
+    def call(self, inputs, training=False, inline_stages=False):
+        """`inline_stages=True`: the caller compiles this whole call with XLA (`tf.function(jit_compile=True)`, at any
+        depth), so the stages are traced inline as plain ops, whatever `compile_mode`. Every such caller must pass it
+        (see `ff3d_tf.model.compile`)."""
+        inputs = {k: inputs[k] for k in schema.MODEL_INPUT_KEYS}
         if self.compile_mode == "none" or tf.executing_eagerly() or inline_stages:
             return self._forward(inputs, training)
         # A fresh function per trace of the caller: the stage reads the variables (or, under `stateless_call`, the
@@ -178,7 +176,7 @@ class FastFlow3D(keras.Model):
         takes its cell's (row W) and adds its own part (`point_flow_t0`) and the bias."""
         valid = encoded["point_valid_t0"]
         k_grid, _, _, bias = self.head_y.composed_with(self.head_z)
-        cell_flow = L.dense_last_axis(grid_flow_embedding, tf.cast(k_grid, grid_flow_embedding.dtype))
+        cell_flow = ops.dense_last_axis(grid_flow_embedding, tf.cast(k_grid, grid_flow_embedding.dtype))
         flow = (tf.cast(self.head_y.ungrid(cell_flow, encoded["pillar_ids_t0"]), tf.float32) +
                 encoded["point_flow_t0"] + bias)
         flow = tf.where(valid[..., None], flow, tf.zeros_like(flow))
@@ -199,7 +197,7 @@ class FastFlow3D(keras.Model):
                 "point_feature_dim": self.point_feature_dim, "encoder_widths": self.encoder_widths,
                 "encoder_depths": self.encoder_depths, "decoder_dims": self.decoder_dims,
                 "head_hidden_dim": self.head_hidden_dim, "zero_init_output": self.zero_init_output,
-                "compile_mode": self.compile_mode}
+                "compile_mode": self.compile_mode, "point_chunk_size": self.point_chunk_size}
 
 
 def model_kwargs(cfg: ExperimentConfig) -> dict:
@@ -211,10 +209,12 @@ def model_kwargs(cfg: ExperimentConfig) -> dict:
                 head_hidden_dim=m.head_hidden_dim, zero_init_output=m.zero_init_output)
 
 
-def build_model(cfg: ExperimentConfig, compile_mode: str | None = None) -> FastFlow3D:
+def build_model(cfg: ExperimentConfig, compile_mode: str | None = None,
+                point_chunk_size: int | None = None) -> FastFlow3D:
     """The model of a config, with its variables created (so count_params works before the first call).
 
     `compile_mode` overrides `cfg.model.compile`; "auto" is resolved for the visible devices (and logged).
+    `point_chunk_size` overrides the point encoder's chunk (default `ops.POINT_CHUNK`; tests take a small one).
     """
     m = cfg.model
     requested = m.compile if compile_mode is None else compile_mode
@@ -227,7 +227,9 @@ def build_model(cfg: ExperimentConfig, compile_mode: str | None = None) -> FastF
     try:
         # The model itself stays float32 so that it does not cast the input points (only its layers compute in
         # the mixed policy).
-        model = FastFlow3D(**model_kwargs(cfg), compile_mode=resolved, dtype="float32")
+        model = FastFlow3D(**model_kwargs(cfg), compile_mode=resolved,
+                           point_chunk_size=ops.POINT_CHUNK if point_chunk_size is None else point_chunk_size,
+                           dtype="float32")
     finally:
         keras.config.set_dtype_policy(previous)
     # Variables from the configuration, without a forward pass: an eager dummy forward would allocate full-size

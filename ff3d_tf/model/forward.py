@@ -11,18 +11,21 @@ import abc
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf.model.fastflow3d import INPUT_KEYS
+from ff3d_tf.schema import MODEL_INPUT_KEYS
 
 
 def model_inputs(batch: dict) -> dict:
     """The model's input keys of a batched example (labels and poses dropped)."""
-    return {k: batch[k] for k in INPUT_KEYS}
+    return {k: batch[k] for k in MODEL_INPUT_KEYS}
 
 
 def compiled_forward(model, jit_compile: bool | None = None):
     """`inputs -> model(inputs, training=False)` as one tf.function, retraced per bucket. The model's compile mode
-    (`model.compile`) says what XLA compiles; `jit_compile=True` makes it one XLA program in any mode."""
-    return tf.function(lambda inputs: model(inputs, training=False), jit_compile=jit_compile, reduce_retracing=True)
+    (`model.compile`) says what XLA compiles; `jit_compile=True` makes it one XLA program in any mode (the model
+    traces its stages inline)."""
+    inline = jit_compile is True
+    return tf.function(lambda inputs: model(inputs, training=False, inline_stages=inline), jit_compile=jit_compile,
+                       reduce_retracing=True)
 
 
 class Predictor(abc.ABC):

@@ -9,19 +9,10 @@ from __future__ import annotations
 import keras
 import tensorflow as tf
 
+from ff3d_tf import internals
+from ff3d_tf.model import ops
+
 _PKG = "ff3d_tf"
-
-# Points per chunk of the point encoder's loop: bounds the [chunk, C] feature memory at any cloud size; 65,536 keeps
-# a chunk's traffic in cache (faster at 1M points than 262,144: benchmarks/latency_cpu_1m.json).
-POINT_CHUNK = 1 << 16
-
-
-def dense_last_axis(x, kernel):
-    """x [..., C] @ kernel [C, U] as one 2-D matmul (no tensordot transposes: inside the point-chunk loop those
-    need compile-time shapes under XLA)."""
-    kernel = tf.cast(kernel, x.dtype)
-    out = tf.matmul(tf.reshape(x, [-1, tf.shape(x)[-1]]), kernel)
-    return tf.reshape(out, tf.concat([tf.shape(x)[:-1], tf.shape(kernel)[-1:]], 0))
 
 
 @keras.saving.register_keras_serializable(package=_PKG)
@@ -131,100 +122,6 @@ class MaskedBatchNorm(keras.layers.Layer):
         return {**super().get_config(), "momentum": self.momentum, "epsilon": self.epsilon}
 
 
-@tf.custom_gradient
-def narrow_matmul(x, kernel):
-    """x [P,K] @ kernel [K,C] for a small K (the 8-D encoding), as K products of a column and a row: XLA fuses them
-    with the ops around them instead of writing the product out for a matrix multiply. The gradient is the usual
-    pair of matrix products."""
-    y = tf.add_n([x[:, j:j + 1] * kernel[j] for j in range(x.shape[-1])])
-
-    def grad(dy):
-        return tf.matmul(dy, kernel, transpose_b=True), tf.matmul(x, dy, transpose_a=True)
-
-    return y, grad
-
-
-def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segments, chunk_size):
-    """Segment sums of per-point values that `fn` computes `chunk_size` points at a time, and optionally per-point
-    rows beside them; with a gradient that recomputes each chunk.
-
-    fn(points [P',D], point_valid [P'], weights) -> (values [P',C], rows [P',U] or None) for a chunk of P' points.
-    points: [P,D] float (the flattened points); point_valid: [P] bool. Padded to whole chunks with zeros (False).
-    weights: tensors that every chunk uses (e.g. kernels); their gradients are summed over the chunks.
-    segment_ids: [P] int32, -1 for points in no segment.
-    Returns (sums [num_segments, C], rows [P, U] or None).
-
-    One chunk's intermediates exist at a time, forward and backward: the loop has a gradient of its own because the
-    automatic one of a tf.while_loop keeps every chunk's intermediates in TensorLists, which may not leave an XLA
-    program (the point stages' forward and backward are separate programs in compile mode "hybrid"). A static count
-    of one chunk runs without a loop; more always run in a tf.while_loop, where XLA adds into the sums in place
-    (unrolled, it reassociates the sums into extra grids).
-    """
-    total, static_total = tf.shape(segment_ids)[0], segment_ids.shape[0]
-    if static_total is not None:
-        chunk = max(min(chunk_size, static_total), 1)
-        num_chunks = max(-(-static_total // chunk), 1)
-    else:
-        chunk = tf.maximum(tf.minimum(chunk_size, total), 1)
-        num_chunks = tf.maximum((total + chunk - 1) // chunk, 1)
-
-    def to_chunks(t, fill):  # [P, ...] -> [K, chunk, ...]
-        t = tf.pad(t, [[0, num_chunks * chunk - total]] + [[0, 0]] * (len(t.shape) - 1), constant_values=fill)
-        return tf.reshape(t, tf.concat([[num_chunks, chunk], tf.shape(t)[1:]], 0))
-
-    ids, valid = to_chunks(segment_ids, -1), to_chunks(point_valid, False)
-
-    def loop(body, state):  # state = body(i, state) for each chunk i
-        if isinstance(num_chunks, int) and num_chunks == 1:
-            return body(0, state)
-        return tf.while_loop(lambda i, _: i < num_chunks, lambda i, s: (i + 1, body(i, s)), (tf.constant(0), state),
-                             maximum_iterations=num_chunks)[1]
-
-    @tf.custom_gradient
-    def run(points, *weights):  # points [K, chunk, D]
-        weights = list(weights)
-
-        def chunk_outputs(points, valid, ids):  # one chunk's segment sums and rows
-            values, rows = fn(points, valid, weights)
-            return tf.math.unsorted_segment_sum(values, ids, num_segments), rows
-
-        def forward(i, state):
-            sums, rows = chunk_outputs(points[i], valid[i], ids[i])
-            return [state[0] + sums] + ([] if rows is None else [tf.tensor_scatter_nd_update(state[1], [[i]],
-                                                                                             rows[None])])
-
-        # An empty chunk gives the outputs' shapes: zero sums to add the chunks to, and the rows' width.
-        sums, rows = chunk_outputs(points[0][:0], valid[0][:0], ids[0][:0])
-        rows = [] if rows is None else [tf.zeros([num_chunks, chunk, rows.shape[-1]], rows.dtype)]
-        state = loop(forward, [sums] + rows)
-
-        def grad(d_sums, d_rows=None):
-            def backward(i, state):
-                d_points, d_weights = state
-                chunk_points = points[i]
-                with tf.GradientTape() as tape:
-                    tape.watch([chunk_points] + weights)
-                    values, rows = fn(chunk_points, valid[i], weights)
-                # The segment sum's gradient, without recomputing the sum (its size may be no compile-time constant
-                # in a separate backward program).
-                gathered = tf.gather(d_sums, tf.maximum(ids[i], 0))
-                d_values = tf.where(ids[i][:, None] >= 0, gathered, tf.zeros_like(gathered))
-                d_chunk, *d_weights_chunk = tape.gradient(
-                    [values] + ([] if rows is None else [rows]), [chunk_points] + weights,
-                    output_gradients=[d_values] + ([] if rows is None else [d_rows[i]]),
-                    unconnected_gradients=tf.UnconnectedGradients.ZERO)
-                return (tf.tensor_scatter_nd_update(d_points, [[i]], d_chunk[None]),
-                        [d + x for d, x in zip(d_weights, d_weights_chunk)])
-
-            d_points, d_weights = loop(backward, (tf.zeros_like(points), [tf.zeros_like(w) for w in weights]))
-            return [d_points] + d_weights
-
-        return state, grad
-
-    sums, *rows = run(to_chunks(points, tf.zeros([], points.dtype)), *weights)
-    return sums, (tf.reshape(rows[0], [-1, rows[0].shape[-1]])[:total] if rows else None)
-
-
 @keras.saving.register_keras_serializable(package=_PKG)
 class PointEncoder(keras.layers.Layer):
     """Table rows A and B: the per-point MLP, BN(8-D encoding) -> Linear(8 -> C, no bias) -> ReLU, and Snap-To-Grid
@@ -234,7 +131,7 @@ class PointEncoder(keras.layers.Layer):
     BN normalises the 8-D encoding, whose channels differ in scale by two orders of magnitude (pillar centres up to
     85 m, offsets < 0.2 m, intensity ~1); a bias would be redundant with BN's beta pushed through the kernel.
 
-    The points are normalised, encoded and scattered `chunk_size` at a time (`chunked_segment_sum`): no [N, C]
+    The points are normalised, encoded and scattered `chunk_size` at a time (`ops.chunked_segment_sum`): no [N, C]
     feature array exists at any cloud size. The head takes a point's feature (and encoding) only through a linear
     map, so the encoder applies that map chunk by chunk (`point_projections`) instead of keeping the features.
 
@@ -253,7 +150,7 @@ class PointEncoder(keras.layers.Layer):
         or None), or (list, list) when called with lists.
     """
 
-    def __init__(self, units=64, num_pillars_x=512, num_pillars_y=512, chunk_size=POINT_CHUNK, **kwargs):
+    def __init__(self, units=64, num_pillars_x=512, num_pillars_y=512, chunk_size=ops.POINT_CHUNK, **kwargs):
         super().__init__(**kwargs)
         self.units = int(units)
         self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
@@ -293,7 +190,7 @@ class PointEncoder(keras.layers.Layer):
 
         def encode(encoding, valid, weights):  # a chunk: encoding [P,8], valid [P]
             mean, scale, beta, kernel = weights[:4]
-            features = tf.nn.relu(narrow_matmul((encoding - mean) * scale + beta, kernel))  # [P,C]
+            features = tf.nn.relu(ops.narrow_matmul((encoding - mean) * scale + beta, kernel))  # [P,C]
             features = tf.where(valid[:, None], features, tf.zeros_like(features))
             # Pillar sums in float32 also under mixed precision: a pillar holds up to hundreds of points, whose sum
             # bfloat16 (8-bit mantissa) would round; and GPUs add float32 atomically, bfloat16 by compare-and-swap.
@@ -306,7 +203,7 @@ class PointEncoder(keras.layers.Layer):
             return pillar_values, tf.matmul(features, weights[4][:self.units]) + by_encoding
 
         weights = [*normalizer, self.dense.kernel] + ([] if projection is None else [projection])
-        grid, rows = chunked_segment_sum(
+        grid, rows = ops.chunked_segment_sum(
             encode, tf.reshape(encoding, [-1, dims]), tf.reshape(point_valid, [-1]),
             [tf.cast(w, encoding.dtype) for w in weights], tf.reshape(tf.where(point_valid, pillar_ids, -1), [-1]),
             cells, self.chunk_size)
@@ -322,12 +219,13 @@ class PointEncoder(keras.layers.Layer):
 class ConvBlock(keras.layers.Layer):
     """Table rows C-R: 3x3 convolution (no bias), BatchNorm, ReLU.
 
-    The BatchNorm runs as TensorFlow's fused kernel (FusedBatchNormV3 and its gradient) on the variables of `self.bn`
-    (a Keras BatchNormalization: gamma, beta, moving mean and variance; checkpoints and parameter count unchanged),
-    with Keras's numbers: momentum and epsilon of `self.bn`, statistics in float32 also under mixed precision, and a
-    moving variance without Bessel's correction. Keras's own layer is a chain of elementwise ops and reductions
-    forward and backward; the fused kernel is one pass each way, oneDNN fuses it with the ReLU in training and with
-    the convolution in inference (_FusedConv2D), and XLA compiles it (and its gradient) as well.
+    The BatchNorm runs as TensorFlow's fused kernel (FusedBatchNormV3 and its gradient, `internals.fused_batch_norm`)
+    on the variables of `self.bn` (a Keras BatchNormalization: gamma, beta, moving mean and variance; checkpoints and
+    parameter count unchanged), with Keras's numbers: momentum and epsilon of `self.bn`, statistics in float32 also
+    under mixed precision, and a moving variance without Bessel's correction. Keras's own layer is a chain of
+    elementwise ops and reductions forward and backward; the fused kernel is one pass each way, oneDNN fuses it with
+    the ReLU in training and with the convolution in inference (_FusedConv2D), and XLA compiles it (and its gradient)
+    as well.
     """
 
     def __init__(self, filters, strides=1, **kwargs):
@@ -346,8 +244,7 @@ class ConvBlock(keras.layers.Layer):
         y = self.conv(x)
         gamma, beta = tf.cast(bn.gamma, tf.float32), tf.cast(bn.beta, tf.float32)
         if training and bn.trainable:
-            y, mean, variance = tf.compat.v1.nn.fused_batch_norm(y, gamma, beta, epsilon=bn.epsilon,
-                                                                 data_format="NHWC", is_training=True)
+            y, mean, variance = internals.fused_batch_norm(y, gamma, beta, epsilon=bn.epsilon, training=True)
             # The op's batch variance carries Bessel's correction n / (n - 1) (n = B*H*W values per channel; 8e-6 to
             # 1.2e-4 relative at batch 1 on the paper grid); Keras's moving variance is the plain E[(y - mean)^2].
             n = tf.cast(tf.reduce_prod(tf.shape(y)[:-1]), tf.float32)
@@ -356,10 +253,9 @@ class ConvBlock(keras.layers.Layer):
             bn.moving_mean.assign(tf.cast(bn.moving_mean, tf.float32) * m + mean * (1.0 - m))
             bn.moving_variance.assign(tf.cast(bn.moving_variance, tf.float32) * m + variance * (1.0 - m))
         else:
-            y, _, _ = tf.compat.v1.nn.fused_batch_norm(
-                y, gamma, beta, mean=tf.cast(bn.moving_mean, tf.float32),
-                variance=tf.cast(bn.moving_variance, tf.float32), epsilon=bn.epsilon, data_format="NHWC",
-                is_training=False)
+            y, _, _ = internals.fused_batch_norm(y, gamma, beta, epsilon=bn.epsilon, training=False,
+                                                 mean=tf.cast(bn.moving_mean, tf.float32),
+                                                 variance=tf.cast(bn.moving_variance, tf.float32))
         return tf.nn.relu(y)
 
     def compute_output_shape(self, input_shape):
@@ -442,9 +338,9 @@ class UngridHead(keras.layers.Layer):
         """inputs: bev [B,H,W,Cg], point_features [B,N,Cp], encoding [B,N,8], pillar_ids [B,N] -> [B,N,U]."""
         bev, point_features, encoding, pillar_ids = inputs
         k_grid, k_point, k_enc = self.split_kernel(tf.cast(self.kernel, bev.dtype))
-        point_term = (dense_last_axis(tf.cast(point_features, bev.dtype), k_point) +
-                      dense_last_axis(tf.cast(encoding, bev.dtype), k_enc) + tf.cast(self.bias, bev.dtype))
-        return self.ungrid(dense_last_axis(bev, k_grid), pillar_ids) + point_term  # [B,N,U]
+        point_term = (ops.dense_last_axis(tf.cast(point_features, bev.dtype), k_point) +
+                      ops.dense_last_axis(tf.cast(encoding, bev.dtype), k_enc) + tf.cast(self.bias, bev.dtype))
+        return self.ungrid(ops.dense_last_axis(bev, k_grid), pillar_ids) + point_term  # [B,N,U]
 
     def split_kernel(self, kernel):
         """A kernel [Cg + Cp + 8, U'] as the parts that multiply the grid, point feature and encoding inputs."""

@@ -1,10 +1,11 @@
 """Custom tf.distribute training loop for FastFlow3D.
 
 MirroredStrategy over the visible GPUs (the CPU when there is none), MultiWorkerMirroredStrategy when TF_CONFIG is set;
-`distribute_datasets_from_function`; loss scaled by the global batch; the forward and backward pass XLA-compiled;
-checkpoints every `checkpoint_every_steps` and on SIGINT/SIGTERM; resume from `--model_dir` at the same step with the
-same optimizer state and the same data order (the deterministic stream is fast-forwarded); non-finite steps are
-skipped and counted and never reach the weights.
+`distribute_datasets_from_function`; the step of `ff3d_tf.model.step` (loss scaled by the global batch, gradients
+summed over replicas, Adam), its forward and backward pass XLA-compiled; checkpoints every `checkpoint_every_steps`
+and on SIGINT/SIGTERM; resume from `--model_dir` at the same step with the same optimizer state and the same data
+order (the deterministic stream is fast-forwarded); non-finite steps are skipped and counted and never reach the
+weights.
 """
 from __future__ import annotations
 
@@ -19,13 +20,15 @@ import keras
 import numpy as np
 import tensorflow as tf
 
+from ff3d_tf import internals
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
 from ff3d_tf.checkpoints import restore_newest_intact
-from ff3d_tf.model.losses import batch_flow_loss
 from ff3d_tf.metrics import SceneFlowMetrics
-from ff3d_tf.model.forward import compiled_forward, model_inputs
 from ff3d_tf.model import build_model
+from ff3d_tf.model import step as step_lib
+from ff3d_tf.model.forward import compiled_forward, model_inputs
+from ff3d_tf.model.step import make_optimizer
 
 _LOG = logging.getLogger(__name__)
 
@@ -64,25 +67,6 @@ def _chief_and_write_dir(strategy: tf.distribute.Strategy, model_dir: str) -> tu
     return False, os.path.join(model_dir, f"tmp_{task_type}_{task_id}")
 
 
-def learning_rate_schedule(cfg: ExperimentConfig):
-    """Constant (the paper) or linear warm-up then cosine decay over `train.num_steps`."""
-    t = cfg.train
-    if t.lr_schedule == "constant" and not t.warmup_steps:
-        return t.learning_rate
-    if t.lr_schedule == "constant":
-        return keras.optimizers.schedules.CosineDecay(0.0, 1, alpha=1.0, warmup_target=t.learning_rate,
-                                                      warmup_steps=t.warmup_steps)
-    return keras.optimizers.schedules.CosineDecay(
-        t.learning_rate if not t.warmup_steps else 0.0, max(t.num_steps - t.warmup_steps, 1),
-        alpha=t.lr_final_fraction, warmup_target=t.learning_rate if t.warmup_steps else None,
-        warmup_steps=t.warmup_steps)
-
-
-def make_optimizer(cfg: ExperimentConfig) -> keras.optimizers.Optimizer:
-    """Adam with the paper's betas and the configured learning-rate schedule."""
-    return keras.optimizers.Adam(learning_rate_schedule(cfg), beta_1=cfg.train.beta_1, beta_2=cfg.train.beta_2)
-
-
 DATA_SERVICE_JOB = "ff3d_train"  # trainers sharing a tf.data service job read disjoint batches of one stream
 
 
@@ -112,6 +96,18 @@ def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, s
     return ds.prefetch(2)
 
 
+def _over_replicas(loss, grads, new_bn_statistics):
+    """The step's reduction in replica context: every replica gets the global loss and gradients (summed: each
+    replica's loss is already divided by the global batch) and the replicas' mean BatchNorm moving statistics (each
+    replica updated them from its own batch; Keras creates them with aggregation "none", so without this the copies
+    drift apart and a checkpoint keeps replica 0's)."""
+    ctx = tf.distribute.get_replica_context()
+    if ctx.num_replicas_in_sync > 1:
+        new_bn_statistics = ctx.all_reduce(tf.distribute.ReduceOp.MEAN, new_bn_statistics)
+    return (ctx.all_reduce(tf.distribute.ReduceOp.SUM, loss), ctx.all_reduce(tf.distribute.ReduceOp.SUM, grads),
+            new_bn_statistics)
+
+
 class Trainer:
     """The training loop. Multi-worker: every worker runs the same steps; only the chief writes into `model_dir`
     (checkpoints, summaries, config, history). The others save into a temporary directory of their own, removed at
@@ -132,72 +128,51 @@ class Trainer:
             self.model = build_model(cfg)
             self.optimizer = make_optimizer(cfg)
             self.optimizer.build(self.model.trainable_variables)
-            self.step = tf.Variable(0, dtype=tf.int64, trainable=False, name="step")
+            self.global_step = tf.Variable(0, dtype=tf.int64, trainable=False, name="step")
             self.nonfinite_total = tf.Variable(0, dtype=tf.int64, trainable=False, name="nonfinite_total")
             self.nonfinite_in_row = tf.Variable(0, dtype=tf.int64, trainable=False, name="nonfinite_in_row")
-        self.checkpoint = tf.train.Checkpoint(model=self.model, optimizer=self.optimizer, step=self.step,
+        self.checkpoint = tf.train.Checkpoint(model=self.model, optimizer=self.optimizer, step=self.global_step,
                                               nonfinite_total=self.nonfinite_total,
                                               nonfinite_in_row=self.nonfinite_in_row)
         self.checkpoint_dir = os.path.join(model_dir, "checkpoints")  # the chief's: every worker restores from it
         self.manager = tf.train.CheckpointManager(self.checkpoint, os.path.join(self._write_dir, "checkpoints"),
                                                   max_to_keep=cfg.train.keep_checkpoints)
-        # Forward + backward as one XLA program in compile mode "xla"; otherwise the model compiles its stages itself.
-        self._grad_fn = tf.function(self._loss_and_grads, jit_compile=self.model.compile_mode == "xla",
-                                    reduce_retracing=True)
+        # Forward + backward as one XLA program in compile mode "xla" (the model's stages inline), the reduction over
+        # replicas and the update outside it; otherwise the model compiles its stages itself.
+        xla = self.model.compile_mode == "xla"
+        loss_and_grads = step_lib.loss_and_grads_fn(cfg, self.model, cfg.train.global_batch_size,
+                                                    inline_stages=xla, on_variables=True)
+        self._step_fn = step_lib.train_step_fn(
+            cfg, tf.function(loss_and_grads, jit_compile=xla, reduce_retracing=True), all_reduce=_over_replicas)
 
     # -- steps -------------------------------------------------------------------------------------------------
-    def _loss_and_grads(self, batch):
-        cfg = self.cfg
-        with tf.GradientTape() as tape:
-            out = self.model(model_inputs(batch), training=True)
-            loss = batch_flow_loss(batch, out, cfg.train.background_weight, cfg.train.global_batch_size)
-        grads = tape.gradient(loss, self.model.trainable_variables)
-        return loss, grads
+    def _state_variables(self) -> step_lib.TrainState:
+        """The variables that hold the training state: the model's and the Keras optimizer's own."""
+        momentums, velocities = internals.adam_slots(self.optimizer)
+        return step_lib.TrainState(list(self.model.trainable_variables), list(self.model.non_trainable_variables),
+                                   momentums, velocities, self.optimizer.iterations)
 
-    def _replica_step(self, batch):
-        loss, grads = self._grad_fn(batch)
-        ctx = tf.distribute.get_replica_context()
-        if ctx.num_replicas_in_sync > 1:
-            # BatchNorm moving statistics: each replica updated its own copy from its own batch (Keras creates them
-            # with aggregation "none", and a synchronising assign cannot run inside the XLA-compiled step); set
-            # every copy to the replicas' mean, else the copies drift apart and a checkpoint keeps replica 0's.
-            moving = self.model.non_trainable_variables
-            means = ctx.all_reduce(tf.distribute.ReduceOp.MEAN, [tf.identity(v.value) for v in moving])
-            for var, mean in zip(moving, means):
-                var.assign(mean)
-        # Sum over replicas here, so every replica holds the global loss and gradients.
-        return ctx.all_reduce(tf.distribute.ReduceOp.SUM, loss), ctx.all_reduce(tf.distribute.ReduceOp.SUM, grads)
+    def _replica_step(self, batch) -> step_lib.StepResult:
+        # This replica's copy of the state, read before the forward moves the BatchNorm variables.
+        state = tf.nest.map_structure(lambda v: tf.identity(v.value), self._state_variables())
+        return self._step_fn(state, batch)
 
     @tf.function
-    def _train_step(self, iterator):
-        # BatchNorm moving statistics change in the forward pass: kept here so a non-finite step can undo that too.
-        moving = self.model.non_trainable_variables
-        moving_before = [tf.identity(v.value) for v in moving]
-        loss, grads = self.strategy.run(self._replica_step, args=(next(iterator),))
-        loss = self.strategy.experimental_local_results(loss)[0]
-        grads = [self.strategy.experimental_local_results(g)[0] for g in grads]
-        grad_norm = tf.linalg.global_norm(grads)
-        finite = tf.math.is_finite(loss) & tf.math.is_finite(grad_norm)
-
-        def apply():
-            g = grads
-            if self.cfg.train.grad_clip_norm is not None:
-                g, _ = tf.clip_by_global_norm(g, self.cfg.train.grad_clip_norm, use_norm=grad_norm)
-            # Cross-replica context: the optimizer updates every mirrored copy with the same global gradients.
-            self.optimizer.apply_gradients(zip(g, self.model.trainable_variables))
-            self.nonfinite_in_row.assign(0)
-            return tf.constant(True)
-
-        def skip():
-            for var, value in zip(moving, moving_before):
-                var.assign(value)
-            self.nonfinite_total.assign_add(1)
-            self.nonfinite_in_row.assign_add(1)
-            return tf.constant(False)
-
-        tf.cond(finite, apply, skip)
-        self.step.assign_add(1)
-        return loss
+    def step(self, iterator):
+        """One training step on the next batch of `iterator` (a distributed iterator of `self.strategy`); returns the
+        global batch's loss. A non-finite step changes no weight, BatchNorm statistic or optimizer slot (it is
+        counted in `nonfinite_total` / `nonfinite_in_row`); `global_step` counts every step."""
+        result = self.strategy.run(self._replica_step, args=(next(iterator),))
+        # Every replica computed the same new state from the reduced loss and gradients: replica 0's is assigned to
+        # every copy (cross-replica context: each variable's assign updates all of its mirrored copies).
+        result = tf.nest.map_structure(lambda x: self.strategy.experimental_local_results(x)[0], result)
+        for var, value in zip(tf.nest.flatten(self._state_variables()), tf.nest.flatten(result.state)):
+            var.assign(value)
+        skipped = tf.cast(tf.logical_not(result.finite), tf.int64)
+        self.nonfinite_total.assign_add(skipped)
+        self.nonfinite_in_row.assign((self.nonfinite_in_row + 1) * skipped)  # 0 after a finite step
+        self.global_step.assign_add(1)
+        return result.loss
 
     # -- loop --------------------------------------------------------------------------------------------------
     def _install_signal_handlers(self):
@@ -211,7 +186,7 @@ class Trainer:
         its prefix, or None for a fresh start."""
         resumed = restore_newest_intact(self.checkpoint, self.checkpoint_dir, self.log, move_damaged=self.is_chief)
         if resumed:
-            self.log(f"resumed from {resumed} at step {int(self.step.numpy())}")
+            self.log(f"resumed from {resumed} at step {int(self.global_step.numpy())}")
         return resumed
 
     def _input_iterator(self, start_step: int):
@@ -253,7 +228,7 @@ class Trainer:
 
     def _finish(self, start_step: int, t_start: float, history: list) -> None:
         """Final checkpoint (unless this step has one), history, and the non-chief's temporary directory removed."""
-        step = int(self.step.numpy())
+        step = int(self.global_step.numpy())
         if self.manager.latest_checkpoint is None or not self.manager.latest_checkpoint.endswith(f"-{step}"):
             self.manager.save(checkpoint_number=step)
         self.log(f"finished {step - start_step} steps in {time.time() - t_start:.1f} s; weights sha256 "
@@ -277,7 +252,7 @@ class Trainer:
         if self.is_chief:
             tf.io.gfile.makedirs(self.model_dir)  # local or gs:// alike
             cfg.save(os.path.join(self.model_dir, "config.yaml"))
-        start_step = int(self.step.numpy())
+        start_step = int(self.global_step.numpy())
         if start_step >= num_steps:
             self.log(f"already at step {start_step} >= {num_steps}; nothing to do")
             self.remove_worker_dir()
@@ -289,10 +264,10 @@ class Trainer:
         t_start, last_log_t, last_log_step = time.time(), time.time(), start_step
         loss_value, history = float("nan"), []
         try:
-            while int(self.step.numpy()) < num_steps:
+            while int(self.global_step.numpy()) < num_steps:
                 with pairs.input_errors_named(self.train_files, self._decode_options):  # stops before any update
-                    loss = self._train_step(iterator)
-                step, loss_value = int(self.step.numpy()), float(loss.numpy())
+                    loss = self.step(iterator)
+                step, loss_value = int(self.global_step.numpy()), float(loss.numpy())
                 self._check_nonfinite(step)
                 if step % cfg.train.log_every_steps == 0 or step == num_steps:
                     now = time.time()
@@ -314,7 +289,7 @@ class Trainer:
             for s, h in previous.items():
                 signal.signal(s, h)
         self._finish(start_step, t_start, history)
-        return {"step": int(self.step.numpy()), "loss": loss_value, "interrupted": False}
+        return {"step": int(self.global_step.numpy()), "loss": loss_value, "interrupted": False}
 
     def evaluate_subset(self, step: int) -> dict:
         """Per-class metrics on the first `eval_num_batches` validation batches, written to TensorBoard."""

@@ -2,7 +2,7 @@
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf.data import pairs, waymo
+from ff3d_tf.data import pairs, waymo, wod_errors
 
 
 def test_pairs_move_previous_cloud_into_t0_frame(tiny_segment, tiny_records, tiny_config):
@@ -94,7 +94,7 @@ def test_input_pipeline_names_bad_input(tiny_records, tiny_config, tmp_path):
     for path, where in ((garbage, "record 1: field Frame: malformed protobuf Frame"),
                         (truncated, "record 2: field tfrecord: corrupt or truncated"),
                         (cut_first, "record 0: field tfrecord: corrupt or truncated")):
-        with pytest.raises(waymo.FrameDecodeError, match=f"{path}: {where}"):
+        with pytest.raises(wod_errors.FrameDecodeError, match=f"{path}: {where}"):
             with pairs.input_errors_named([path]):
                 list(pairs.pair_dataset([path], tiny_config))
     # Skipping: the garbage record leaves frames 0 and 2 (0.2 s apart: no pair); the truncated file ends after 2.

@@ -12,12 +12,12 @@ jax = pytest.importorskip("jax", reason="the xla extra (pip install .[xla]) prov
 import tensorflow as tf  # noqa: E402
 
 from conftest import ROOT  # noqa: E402
-from ff3d_tf.inference import xla_artifact  # noqa: E402
+from ff3d_tf.inference import xla_artifact, xla_timing  # noqa: E402
 from ff3d_tf.inference.xla_export import export_forward, model_weights  # noqa: E402
 from ff3d_tf.model import build_model  # noqa: E402
-from ff3d_tf.model.fastflow3d import INPUT_KEYS  # noqa: E402
+from ff3d_tf.schema import MODEL_INPUT_KEYS  # noqa: E402
 from ff3d_tf.model.losses import batch_flow_loss  # noqa: E402
-from ff3d_tf.training.trainer import make_optimizer  # noqa: E402
+from ff3d_tf.model.step import make_optimizer  # noqa: E402
 
 POINTS = (700, 1500)  # tiny config buckets (base 1024): 1024 and 1536
 TRAIN_POINTS, TRAIN_BATCH = (900,), 2  # one training-step artifact: 2 x 1024 points
@@ -94,12 +94,12 @@ def test_artifacts_equal_tf_forward_without_tensorflow(exported_tiny, tmp_path):
         os.symlink(os.path.join(out_dir, name), export_dir / name)
     (export_dir / xla_artifact.MANIFEST_NAME).write_text(json.dumps({**manifest, "artifacts": float32}))
     rng = np.random.default_rng(0)
-    forward = tf.function(lambda x: model(x, training=False), jit_compile=True)
+    forward = tf.function(lambda x: model(x, training=False, inline_stages=True), jit_compile=True)
     inputs, reference = {}, {}
     for i, entry in enumerate(float32):
         arrays = xla_artifact.random_inputs(manifest, entry, rng)
-        inputs.update({f"{i}_{k}": a for k, a in zip(INPUT_KEYS, arrays)})
-        reference[i] = forward(dict(zip(INPUT_KEYS, arrays)))
+        inputs.update({f"{i}_{k}": a for k, a in zip(MODEL_INPUT_KEYS, arrays)})
+        reference[i] = forward(dict(zip(MODEL_INPUT_KEYS, arrays)))
     np.savez(tmp_path / "inputs.npz", **inputs)
     script = tmp_path / "run_on_inputs.py"
     script.write_text(RUN_ON_INPUTS)
@@ -124,8 +124,9 @@ def test_paper_config_artifact_equals_tf_forward_without_tensorflow(tmp_path):
     manifest = export_forward(cfg, model, [12000], str(tmp_path / "export"), log=lambda _: None)
     (entry,) = manifest["artifacts"]
     arrays = xla_artifact.random_inputs(manifest, entry, np.random.default_rng(1))
-    reference = tf.function(lambda x: model(x, training=False), jit_compile=True)(dict(zip(INPUT_KEYS, arrays)))
-    np.savez(tmp_path / "inputs.npz", **{f"0_{k}": a for k, a in zip(INPUT_KEYS, arrays)})
+    forward = tf.function(lambda x: model(x, training=False, inline_stages=True), jit_compile=True)
+    reference = forward(dict(zip(MODEL_INPUT_KEYS, arrays)))
+    np.savez(tmp_path / "inputs.npz", **{f"0_{k}": a for k, a in zip(MODEL_INPUT_KEYS, arrays)})
     script = tmp_path / "run_on_inputs.py"
     script.write_text(RUN_ON_INPUTS)
     _run_without_tf(str(script), ROOT, str(tmp_path / "export"), str(tmp_path / "inputs.npz"),
@@ -175,11 +176,11 @@ def test_train_step_equals_keras_adam_training(exported_tiny, tiny_config):
     reference = build_model(tiny_config)
     reference.set_weights(model.get_weights())
     optimizer = make_optimizer(tiny_config)
-    tf_batch = dict(zip(INPUT_KEYS + xla_artifact.TRAIN_LABEL_KEYS, batch))
+    tf_batch = dict(zip(MODEL_INPUT_KEYS + xla_artifact.TRAIN_LABEL_KEYS, batch))
     tf_losses = []
     for _ in range(2):
         with tf.GradientTape() as tape:
-            out = reference({k: tf_batch[k] for k in INPUT_KEYS}, training=True)
+            out = reference({k: tf_batch[k] for k in MODEL_INPUT_KEYS}, training=True)
             loss = batch_flow_loss(tf_batch, out, tiny_config.train.background_weight, TRAIN_BATCH)
         optimizer.apply_gradients(zip(tape.gradient(loss, reference.trainable_variables),
                                       reference.trainable_variables))
@@ -231,7 +232,7 @@ def test_latency_table_beside_the_paper():
                            "min_ms": 12.0, "median_host_ms": 15.0},
                           {"points": 5000, "precision": "float32", "median_ms": 1.0, "mean_ms": 1.0, "min_ms": 1.0,
                            "median_host_ms": 1.0}]}
-    rows = xla_artifact.latency_table(result).splitlines()[4:]
+    rows = xla_timing.latency_table(result).splitlines()[4:]
     # 49.3 / 4.0 = 12.3x (target 10x met); 98.1 / 12.5 = 7.8x (not met); 5,000 points: no paper figure.
     assert rows[0] == "| 32,000 | float32 | 4.00 | 4.10 | 3.90 | 5.00 | 49.3 | 12.3x | yes |"
     assert rows[1] == "| 1,000,000 | tf32 | 12.50 | 12.60 | 12.00 | 15.00 | 98.1 | 7.8x | no |"

@@ -7,7 +7,7 @@ from waymo_open_dataset import dataset_pb2
 
 from conftest import AV2_LOG
 from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow
-from ff3d_tf.data import waymo
+from ff3d_tf.data import waymo, wod_errors
 
 
 def _boxes(centers, headings, tracks, classes, size=(4.0, 2.0, 1.5)):
@@ -145,7 +145,7 @@ def test_annotate_segment_bad_record(tiny_records, tmp_path):
     path = corrupt_records.write_records(str(tmp_path / "mixed.tfrecord"), [
         tiny_records[0], tiny_records[1], corrupt_records.GARBAGE, tiny_records[2], tiny_records[3]])
     out = str(tmp_path / "out" / "mixed.tfrecord")
-    with pytest.raises(waymo.FrameDecodeError, match="mixed.tfrecord: record 2"):
+    with pytest.raises(wod_errors.FrameDecodeError, match="mixed.tfrecord: record 2"):
         annotate_segment(path, out, returns=(1,))
     assert not os.path.exists(out) and not os.path.exists(out + ".partial")
     counts = annotate_segment(path, out, returns=(1,), skip_bad_records=True)

@@ -29,11 +29,10 @@ def _inputs(seed=5, batch=2, n0=300, n1=260):
             "points_xyz_tm1_in_t0": p1, "point_features_tm1": f1, "point_mask_tm1": tf.ones([batch, n1], tf.bool)}
 
 
-def _models(cfg, monkeypatch, chunk=128):
+def _models(cfg, chunk=128):
     """One model per mode with the same weights; several point chunks; outputs of a real flow's size (~1 m/s)."""
-    monkeypatch.setattr(fastflow3d, "POINT_CHUNK", chunk)
     keras.utils.set_random_seed(2)
-    models = {m: build_model(cfg, m) for m in MODES}
+    models = {m: build_model(cfg, m, point_chunk_size=chunk) for m in MODES}
     models["none"].head_z.kernel.assign(models["none"].head_z.kernel * 0.1)
     for m in MODES:
         models[m].set_weights(models["none"].get_weights())
@@ -62,9 +61,9 @@ def _xla_functions(graph_def):
     return {f.signature.name for f in graph_def.library.function if f.attr["_XlaMustCompile"].b}, ops
 
 
-def test_each_mode_compiles_what_it_says(tiny_config, monkeypatch):
+def test_each_mode_compiles_what_it_says(tiny_config):
     inputs = _inputs()
-    for mode, model in _models(tiny_config, monkeypatch).items():
+    for mode, model in _models(tiny_config).items():
         graph_def = tf.function(lambda x: model(x)).get_concrete_function(inputs).graph.as_graph_def()
         xla, ops = _xla_functions(graph_def)
         outer_ops = {n.op for n in graph_def.node}
@@ -79,8 +78,8 @@ def test_each_mode_compiles_what_it_says(tiny_config, monkeypatch):
             assert "Conv2D" in outer_ops
 
 
-def test_outputs_equal_across_modes(tiny_config, monkeypatch):
-    models = _models(tiny_config, monkeypatch)
+def test_outputs_equal_across_modes(tiny_config):
+    models = _models(tiny_config)
     inputs = _inputs()
     reference = models["none"](inputs)["flow_mps"].numpy()  # eager
     assert 0.1 < np.abs(reference).max() < 20
@@ -91,14 +90,14 @@ def test_outputs_equal_across_modes(tiny_config, monkeypatch):
 
 
 @pytest.mark.parametrize("mode", ["hybrid", pytest.param("xla", marks=pytest.mark.slow)])
-def test_gradients_equal_across_modes(tiny_config, monkeypatch, mode):
-    models = _models(tiny_config, monkeypatch)
+def test_gradients_equal_across_modes(tiny_config, mode):
+    models = _models(tiny_config)
     inputs = _inputs()
 
     def grads(model, jit_compile):  # the trainer's choice of outer compilation
         def loss_and_grads(x):
             with tf.GradientTape() as tape:
-                loss = tf.reduce_sum(tf.square(model(x, training=True)["flow_mps"]))
+                loss = tf.reduce_sum(tf.square(model(x, training=True, inline_stages=jit_compile)["flow_mps"]))
             return tape.gradient(loss, model.trainable_variables)
         return [g.numpy() for g in tf.function(loss_and_grads, jit_compile=jit_compile)(inputs)]
 
@@ -110,35 +109,44 @@ def test_gradients_equal_across_modes(tiny_config, monkeypatch, mode):
 
 @pytest.mark.parametrize("mode", ["hybrid", pytest.param("xla", marks=pytest.mark.slow),
                                   pytest.param("none", marks=pytest.mark.slow)])
-def test_whole_program_xla_stateless_call(tiny_config, monkeypatch, mode):
+def test_whole_program_xla_stateless_call(tiny_config, mode):
     """The portable export's path: `stateless_call` under one jit_compile=True function, with the weights as inputs."""
     inputs = _inputs(batch=1)
-    model = _models(tiny_config, monkeypatch)[mode]
+    model = _models(tiny_config)[mode]
     trainable = [v.value for v in model.trainable_variables]
     non_trainable = [v.value for v in model.non_trainable_variables]
-    fn = tf.function(lambda t, n, x: model.stateless_call(t, n, x)[0]["flow_mps"], jit_compile=True)
+
+    def forward(inline):
+        return tf.function(lambda t, n, x: model.stateless_call(t, n, x, inline_stages=inline)[0]["flow_mps"],
+                           jit_compile=True)
+    fn = forward(True)
     graph_def = fn.get_concrete_function(trainable, non_trainable, inputs).graph.as_graph_def()
     assert not _xla_functions(graph_def)[0]  # traced inline: one program, no nested stage functions
     expected = model(inputs)["flow_mps"].numpy()
     np.testing.assert_allclose(fn(trainable, non_trainable, inputs).numpy(), expected, atol=1e-4)
+    # A caller that forgets the flag: the stages' own XLA functions nest in its program, with the same values.
+    forgot = forward(False)
+    nested = _xla_functions(forgot.get_concrete_function(trainable, non_trainable, inputs).graph.as_graph_def())[0]
+    assert len(nested) == {"xla": 1, "hybrid": 2, "none": 0}[mode]
+    np.testing.assert_allclose(forgot(trainable, non_trainable, inputs).numpy(), expected, atol=1e-4)
     # The weights passed in are the ones used: row Z's kernel doubled (its bias is zero) doubles the flow.
     doubled = [2.0 * t if t.shape.rank == 2 and t.shape[-1] == 3 else t for t in trainable]
     np.testing.assert_allclose(fn(doubled, non_trainable, inputs).numpy(), 2.0 * expected, rtol=1e-3, atol=1e-3)
 
 
-def test_mixed_precision_trains_in_every_mode(tiny_config, monkeypatch):
+def test_mixed_precision_trains_in_every_mode(tiny_config):
     """A bfloat16 training step compiles and gives finite gradients in every mode. Regression: in mode xla (the GPU
     default) XLA rejected the step ("floating point types of different precisions") because TensorFlow lowers the
     bilinear upsampling's gradient to float32 for bfloat16 inputs; U2 now runs in float32."""
     cfg = replace_config(tiny_config, {"model.mixed_precision": True})
-    models = _models(cfg, monkeypatch)
+    models = _models(cfg)
     inputs = _inputs()
     norms = {}
     for mode, model in models.items():
         @tf.function(jit_compile=mode == "xla")
         def grads(x, model=model):
             with tf.GradientTape() as tape:
-                loss = tf.reduce_mean(tf.square(model(x, training=True)["flow_mps"]))
+                loss = tf.reduce_mean(tf.square(model(x, training=True, inline_stages=mode == "xla")["flow_mps"]))
             return tape.gradient(loss, model.trainable_variables)
         g = grads(inputs)
         assert all(t is not None and t.dtype == tf.float32 for t in g), mode

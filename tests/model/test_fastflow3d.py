@@ -35,7 +35,7 @@ def _inputs(rng, batch, n0, n1, extent=40.0):
 
 
 def test_shapes_and_config_round_trip(tiny_config):
-    model = build_model(tiny_config)
+    model = build_model(tiny_config, point_chunk_size=100)  # several chunks per cloud
     inputs = _inputs(np.random.default_rng(0), 2, 300, 250)
     out = model(inputs)
     assert out["flow_mps"].shape == (2, 300, 3) and out["point_valid"].shape == (2, 300)
@@ -45,6 +45,7 @@ def test_shapes_and_config_round_trip(tiny_config):
     np.testing.assert_allclose(clone(inputs)["flow_mps"], out["flow_mps"], atol=1e-6)
     restored = keras.saving.deserialize_keras_object(keras.saving.serialize_keras_object(model))
     assert restored.get_config() == model.get_config()
+    assert clone.point_encoder.chunk_size == restored.point_encoder.chunk_size == 100
 
 
 def test_pillarization_by_hand():
@@ -104,7 +105,7 @@ def test_xla_matches_eager(tiny_config):
     # are of a real flow's size (~1 m/s) and 1e-5 is a meaningful bound.
     model.head_z.kernel.assign(model.head_z.kernel * 0.1)
     eager = model(inputs)["flow_mps"].numpy()
-    xla = tf.function(lambda x: model(x), jit_compile=True)(inputs)["flow_mps"].numpy()
+    xla = tf.function(lambda x: model(x, inline_stages=True), jit_compile=True)(inputs)["flow_mps"].numpy()
     graph = tf.function(lambda x: model(x))(inputs)["flow_mps"].numpy()
     np.testing.assert_allclose(xla, eager, atol=1e-5)
     np.testing.assert_allclose(graph, eager, atol=1e-5)
@@ -149,12 +150,10 @@ def test_flow_equals_the_table_rows_called_one_by_one(tiny_config):
     np.testing.assert_allclose(model(inputs)["flow_mps"].numpy()[v], expected.numpy()[v], atol=1e-5)
 
 
-def test_point_stages_hold_no_per_point_feature_array(tiny_config, monkeypatch):
+def test_point_stages_hold_no_per_point_feature_array(tiny_config):
     """At several chunks per cloud, neither point stage has an [N, C] array (point features): memory per point stays
     a few floats at any cloud size (at 1M points, no 256 MB feature array)."""
-    from ff3d_tf.model import fastflow3d
-    monkeypatch.setattr(fastflow3d, "POINT_CHUNK", 128)
-    model = build_model(tiny_config)
+    model = build_model(tiny_config, point_chunk_size=128)
     n, c = 1500, tiny_config.model.point_feature_dim  # n above the grid's 32 x 32 cells
     inputs = _inputs(np.random.default_rng(9), 1, n, n)
     encode = tf.function(lambda x: model.encode_points(x), jit_compile=True)

@@ -6,6 +6,7 @@ import pytest
 import tensorflow as tf
 
 from ff3d_tf.model import layers as L
+from ff3d_tf.model import ops
 from tests.model.layer_harness import run_layer_test
 
 RNG = np.random.default_rng(0)
@@ -207,7 +208,7 @@ def test_ungrid_head_composed_with_output_layer():
     head, output = L.UngridHead(units=7), keras.layers.Dense(3, bias_initializer="random_normal")
     expected = output(head([bev, feats, enc, ids]))
     k_grid, k_point, k_enc, bias = head.composed_with(output)
-    got = (head.ungrid(L.dense_last_axis(bev, k_grid), ids) + L.dense_last_axis(feats, k_point) +
-           L.dense_last_axis(enc, k_enc) + bias)
+    got = (head.ungrid(ops.dense_last_axis(bev, k_grid), ids) + ops.dense_last_axis(feats, k_point) +
+           ops.dense_last_axis(enc, k_enc) + bias)
     v = valid.numpy()
     np.testing.assert_allclose(got.numpy()[v], expected.numpy()[v], atol=1e-5)

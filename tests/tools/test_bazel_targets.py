@@ -5,9 +5,13 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 # The checkout (realpath: under Bazel this file is a symlink in the runfiles tree, which holds only declared inputs).
 CHECKOUT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.realpath(__file__))))
 CHECKER = os.path.join(CHECKOUT, "tools", "check_bazel_targets.py")
+PYTEST_LOAD = 'load("//bazel:pytest.bzl", "pytest_test")'
+VISIBILITY = 'package(default_visibility = ["//visibility:public"])'
 
 FAKE_TREE = {
     "ff3d_tf/__init__.py": '"""Package."""\n',
@@ -122,17 +126,92 @@ def test_new_test_file_is_caught_and_its_stanza_fixes_it(tmp_path):
 def test_new_module_is_caught_and_fix_writes_it(tmp_path):
     root = _fake_tree(tmp_path)
     _write(root, {"ff3d_tf/sub/more.py": "import numpy\nfrom ff3d_tf.sub.helpers import twice\n",
-                  "ff3d_tf/newpkg/__init__.py": "from ff3d_tf import base\n"})
+                  "ff3d_tf/newpkg/__init__.py": "from ff3d_tf import base\n",
+                  "ff3d_tf/newpkg/wod.py": "from . import report\nfrom ff3d_tf.sub import uses\n",
+                  "ff3d_tf/newpkg/report.py": "",
+                  "tests/newpkg/test_wod.py": "from ff3d_tf.newpkg import wod\n\ndef test_x():\n    pass\n"})
     rc, out = _check(root)
     assert rc == 1
     assert "ff3d_tf/sub/more.py: no py_library 'more' in ff3d_tf/sub/BUILD" in out
     assert "ff3d_tf/newpkg/__init__.py: no ff3d_tf/newpkg/BUILD" in out
+    assert "tests/newpkg/test_wod.py: no tests/newpkg/BUILD" in out
     rc, out = _check(root, "--fix")
     assert rc == 0, out
     with open(root / "ff3d_tf/newpkg/BUILD") as f:
-        assert 'name = "newpkg",\n    srcs = ["__init__.py"],\n    deps = ["//ff3d_tf:base"],' in f.read()
+        text = f.read()
+    assert 'name = "newpkg",\n    srcs = ["__init__.py"],\n    deps = ["//ff3d_tf:base"],' in text
+    assert 'name = "wod",\n    srcs = ["wod.py"],\n    deps = [\n        ":report",\n        "//ff3d_tf/sub:uses",\n    ],' in (
+        text)
+    with open(root / "tests/newpkg/BUILD") as f:
+        assert f.read() == (PYTEST_LOAD + "\n\n" + VISIBILITY + "\n\n"
+                            + 'pytest_test(\n    name = "test_wod",\n    deps = ["//ff3d_tf/newpkg:wod"],\n)\n')
     with open(root / "ff3d_tf/sub/BUILD") as f:
         assert 'name = "more",\n    srcs = ["more.py"],\n    deps = [":helpers"],' in f.read()
+
+
+def test_checker_library_modules_are_targets_too(tmp_path):
+    root = _fake_tree(tmp_path)
+    _write(root, {"bazel/targets/__init__.py": "", "bazel/targets/lib.py": "from bazel.targets import util\n",
+                  "bazel/targets/util.py": "", "tools/check.py": "from bazel.targets import lib\n"})
+    rc, out = _check(root, "--fix")
+    assert rc == 0, out
+    with open(root / "bazel/targets/BUILD") as f:
+        assert 'py_library(\n    name = "lib",\n    srcs = ["lib.py"],\n    deps = [":util"],\n)' in f.read()
+    with open(root / "tools/BUILD") as f:
+        assert 'name = "check",\n    srcs = ["check.py"],\n    deps = ["//bazel/targets:lib"],\n)' in f.read()
+
+
+def test_build_file_shapes_it_writes_and_reads(tmp_path):
+    root = _fake_tree(tmp_path)
+    _write(root, {"BUILD": 'package(default_visibility = ["//visibility:public"])\nexports_files(["pytest.ini"])\n',
+                  "tests/BUILD": FAKE_BUILD["tests/BUILD"].replace('"pytest_test")', '"pytest_test", alias = "x")')
+                  + 'pytest_test(name = "test_more", env = {"A": "1"}, shard_count = -2, flaky = True, tags = [],'
+                    ' size = None, timeout = "short")\n',
+                  "tests/test_more.py": "def test_x():\n    pass\n"})
+    rc, out = _check(root, "--fix")
+    assert rc == 0, out
+    with open(root / "tests/BUILD") as f:
+        assert ('pytest_test(\n    name = "test_more",\n    env = {"A": "1"},\n    shard_count = -2,\n'
+                '    flaky = True,\n    tags = [],\n    size = None,\n    timeout = "short",\n)') in f.read()
+    assert _check(root) == (0, "Bazel targets cover the tree (11 source files)\n")
+
+
+REFUSED = {  # a line that the reader refuses in a BUILD file: what the message says of it
+    "import os": ["`import os` (Import) is not a call of a rule"],
+    '__import__("os").system("touch {marker}")': ["`__import__('os').system` (Attribute) is called;"],
+    '_private(name = "x")': ["`_private(name='x')` (Call) calls a private name"],
+    'py_library(name = "x", srcs = [open("{marker}", "w").name])': ["`open(", "(Attribute) is not a literal"],
+    'py_library(name = "x", deps = [str(1)])': ["`str(1)` (Call) is not a literal"],
+    "SRCS = ['base.py']": ["`SRCS = ['base.py']` (Assign) is not a call"],
+    'py_library(name = "x", srcs = SRCS)': ["`SRCS` (Name) is not a literal"],
+    'py_library(**{{"name": "x"}})': ["`{{'name': 'x'}}` (Dict) is spread into py_library() with **"],
+    'py_library("x")': ["`'x'` (Constant) is a positional argument of py_library()"],
+    'py_library(name = "x", srcs = glob(["../../**"]))': ["has the pattern '../../**', which leaves the package"],
+    'py_library(name = "x", srcs = ["a.py"] + ["b.py"])': ["(BinOp) is not a literal"],
+    'py_library(name = "x", deps = ":base")': ["`':base'` (Constant) is given to deps, which takes a list of strings"],
+    "def f(): pass": ["`def f(): pass` (FunctionDef) is not a call"],
+    'py_library(name = "x", srcs = [f"{{x}}"])': ["(JoinedStr) is not a literal"],
+    'py_library(name = "x", srcs = ["a.py"]': ["cannot parse ('(' was never closed)"],
+    'py_library(name = "base")': ["target 'base' defined twice"],
+}
+
+
+@pytest.mark.parametrize("line", sorted(REFUSED))
+def test_build_file_with_code_is_refused_and_nothing_of_it_runs(tmp_path, line):
+    root = _fake_tree(tmp_path)
+    marker = tmp_path / "ran"
+    written = ('py_library(name = "ff3d_tf", srcs = ["__init__.py"])\npy_library(name = "base", srcs = ["base.py"])\n'
+               + line.format(marker=marker) + "\n")
+    _write(root, {"ff3d_tf/BUILD": written})
+    rc, out = _check(root, "--fix")  # checks, fixes, then checks again
+    assert rc == 1
+    message = next(m for m in out.splitlines() if m.startswith("  ff3d_tf/BUILD:3: "))  # file and line
+    assert all(part.format(marker=marker) in message for part in REFUSED[line]), message
+    assert "no py_library" not in out, out  # the targets of a file it cannot read are not reported one by one
+    assert "not fixed: ff3d_tf/BUILD not rewritten: it cannot be read" in out
+    with open(root / "ff3d_tf/BUILD") as f:
+        assert f.read() == written  # --fix leaves it alone
+    assert not marker.exists()
 
 
 def test_wrong_deps_data_and_slow_split_are_named(tmp_path):

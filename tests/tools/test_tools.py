@@ -77,5 +77,6 @@ def test_annotate_flow_bad_arguments_fail_before_work(tiny_segment, tmp_path):
     out = subprocess.run([sys.executable, "tools/annotate_flow.py", "--input", tiny_segment, "--out_dir",
                           str(tmp_path / "o"), "--returns", "3"], cwd=ROOT, capture_output=True, text=True,
                          timeout=300)
-    assert out.returncode != 0 and "returns (3,): each must be 1 or 2" in out.stderr
+    from ff3d_tf.schema import ALL_LASERS, lidar_selection_problem
+    assert out.returncode != 0 and lidar_selection_problem(ALL_LASERS, (3,)) in out.stderr
     assert not (tmp_path / "o").exists()

@@ -13,7 +13,7 @@ from ff3d_tf.data import pairs
 from ff3d_tf.model.forward import model_inputs
 from ff3d_tf.model import build_model
 from ff3d_tf.model.losses import per_sample_flow_loss
-from ff3d_tf.training.trainer import make_optimizer
+from ff3d_tf.model.step import make_optimizer
 
 GLOBAL_BATCH = 2
 
@@ -47,7 +47,7 @@ class Reference:
 
     def _sample_loss_and_grads(self, sample):
         with tf.GradientTape() as tape:
-            out = self.model(model_inputs(sample), training=True)
+            out = self.model(model_inputs(sample), training=True, inline_stages=self.cfg.model.jit_compile)
             valid = out["point_valid"] & sample["point_mask_t0"]
             loss = tf.reduce_sum(per_sample_flow_loss(sample["flow_mps_t0"], out["flow_mps"], sample["class_id_t0"],
                                                       valid, self.cfg.train.background_weight)) / GLOBAL_BATCH

@@ -32,10 +32,10 @@ def test_two_replicas_equal_the_reference(tiny_segment, tiny_config, tmp_path):
     trainer = Trainer(cfg, str(tmp_path / "m"), [tiny_segment], strategy=_two_replicas(), log_fn=lambda s: None)
     assert trainer.strategy.num_replicas_in_sync == 2
     ref = Reference(cfg, trainer.model.get_weights())
-    loss = float(trainer._train_step(_distributed(trainer.strategy, batch)))
+    loss = float(trainer.step(_distributed(trainer.strategy, batch)))
     ref_loss = ref.step(batch)
     np.testing.assert_allclose(loss, ref_loss, rtol=1e-5)
-    assert int(trainer.step.numpy()) == 1 and int(trainer.nonfinite_total.numpy()) == 0
+    assert int(trainer.global_step.numpy()) == 1 and int(trainer.nonfinite_total.numpy()) == 0
     _assert_same(trainer, ref)
     # The BatchNorm statistics really differ per replica (else the mean rule above would not be tested).
     assert not np.allclose(batch["points_xyz_t0"][0], batch["points_xyz_t0"][1])
@@ -48,15 +48,15 @@ def test_three_steps_with_resume_equal_the_reference(tiny_segment, tiny_config, 
     first = Trainer(cfg, model_dir, [tiny_segment], strategy=_two_replicas(), log_fn=lambda s: None)
     ref = Reference(cfg, first.model.get_weights())
     for b in three[:2]:
-        first._train_step(_distributed(first.strategy, b))
+        first.step(_distributed(first.strategy, b))
         ref.step(b)
     first.manager.save(checkpoint_number=2)
     resumed = Trainer(cfg, model_dir, [tiny_segment], strategy=_two_replicas(), log_fn=lambda s: None)
     resumed.restore_latest()
-    assert int(resumed.step.numpy()) == 2
-    resumed._train_step(_distributed(resumed.strategy, three[2]))
+    assert int(resumed.global_step.numpy()) == 2
+    resumed.step(_distributed(resumed.strategy, three[2]))
     ref.step(three[2])
-    assert int(resumed.step.numpy()) == 3
+    assert int(resumed.global_step.numpy()) == 3
     _assert_same(resumed, ref)
 
 

@@ -1,0 +1,3 @@
+"""Mutation fuzzing of the readers: WOD records and files (`wod`, damaged by `wod_mutants`), Argoverse 2 feather logs
+(`av2`) and YAML configs (`config`); the outcomes, report and watchdog they share (`report`). `tools/fuzz_reader.py`
+runs them with thousands of mutants; `tests/fuzz/` with a few hundred."""

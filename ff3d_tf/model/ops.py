@@ -1,0 +1,114 @@
+"""The model's operations that are not layers: the point encoder's chunk loop (`chunked_segment_sum`, `POINT_CHUNK`
+points at a time by default) and two matrix products shaped for XLA (`dense_last_axis`, `narrow_matmul`).
+
+Notation as in `ff3d_tf.model.layers`: P points (flattened over the batch), C channels.
+"""
+from __future__ import annotations
+
+import tensorflow as tf
+
+# Points per chunk of the point encoder's loop: bounds the [chunk, C] feature memory at any cloud size; 65,536 keeps
+# a chunk's traffic in cache (faster at 1M points than 262,144: benchmarks/latency_cpu_1m.json).
+POINT_CHUNK = 1 << 16
+
+
+def dense_last_axis(x, kernel):
+    """x [..., C] @ kernel [C, U] as one 2-D matmul (no tensordot transposes: inside the point-chunk loop those
+    need compile-time shapes under XLA)."""
+    kernel = tf.cast(kernel, x.dtype)
+    out = tf.matmul(tf.reshape(x, [-1, tf.shape(x)[-1]]), kernel)
+    return tf.reshape(out, tf.concat([tf.shape(x)[:-1], tf.shape(kernel)[-1:]], 0))
+
+
+@tf.custom_gradient
+def narrow_matmul(x, kernel):
+    """x [P,K] @ kernel [K,C] for a small K (the 8-D encoding), as K products of a column and a row: XLA fuses them
+    with the ops around them instead of writing the product out for a matrix multiply. The gradient is the usual
+    pair of matrix products."""
+    y = tf.add_n([x[:, j:j + 1] * kernel[j] for j in range(x.shape[-1])])
+
+    def grad(dy):
+        return tf.matmul(dy, kernel, transpose_b=True), tf.matmul(x, dy, transpose_a=True)
+
+    return y, grad
+
+
+def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segments, chunk_size):
+    """Segment sums of per-point values that `fn` computes `chunk_size` points at a time, and optionally per-point
+    rows beside them; with a gradient that recomputes each chunk.
+
+    fn(points [P',D], point_valid [P'], weights) -> (values [P',C], rows [P',U] or None) for a chunk of P' points.
+    points: [P,D] float (the flattened points); point_valid: [P] bool. Padded to whole chunks with zeros (False).
+    weights: tensors that every chunk uses (e.g. kernels); their gradients are summed over the chunks.
+    segment_ids: [P] int32, -1 for points in no segment.
+    Returns (sums [num_segments, C], rows [P, U] or None).
+
+    One chunk's intermediates exist at a time, forward and backward: the loop has a gradient of its own because the
+    automatic one of a tf.while_loop keeps every chunk's intermediates in TensorLists, which may not leave an XLA
+    program (the point stages' forward and backward are separate programs in compile mode "hybrid"). A static count
+    of one chunk runs without a loop; more always run in a tf.while_loop, where XLA adds into the sums in place
+    (unrolled, it reassociates the sums into extra grids).
+    """
+    total, static_total = tf.shape(segment_ids)[0], segment_ids.shape[0]
+    if static_total is not None:
+        chunk = max(min(chunk_size, static_total), 1)
+        num_chunks = max(-(-static_total // chunk), 1)
+    else:
+        chunk = tf.maximum(tf.minimum(chunk_size, total), 1)
+        num_chunks = tf.maximum((total + chunk - 1) // chunk, 1)
+
+    def to_chunks(t, fill):  # [P, ...] -> [K, chunk, ...]
+        t = tf.pad(t, [[0, num_chunks * chunk - total]] + [[0, 0]] * (len(t.shape) - 1), constant_values=fill)
+        return tf.reshape(t, tf.concat([[num_chunks, chunk], tf.shape(t)[1:]], 0))
+
+    ids, valid = to_chunks(segment_ids, -1), to_chunks(point_valid, False)
+
+    def loop(body, state):  # state = body(i, state) for each chunk i
+        if isinstance(num_chunks, int) and num_chunks == 1:
+            return body(0, state)
+        return tf.while_loop(lambda i, _: i < num_chunks, lambda i, s: (i + 1, body(i, s)), (tf.constant(0), state),
+                             maximum_iterations=num_chunks)[1]
+
+    @tf.custom_gradient
+    def run(points, *weights):  # points [K, chunk, D]
+        weights = list(weights)
+
+        def chunk_outputs(points, valid, ids):  # one chunk's segment sums and rows
+            values, rows = fn(points, valid, weights)
+            return tf.math.unsorted_segment_sum(values, ids, num_segments), rows
+
+        def forward(i, state):
+            sums, rows = chunk_outputs(points[i], valid[i], ids[i])
+            return [state[0] + sums] + ([] if rows is None else [tf.tensor_scatter_nd_update(state[1], [[i]],
+                                                                                             rows[None])])
+
+        # An empty chunk gives the outputs' shapes: zero sums to add the chunks to, and the rows' width.
+        sums, rows = chunk_outputs(points[0][:0], valid[0][:0], ids[0][:0])
+        rows = [] if rows is None else [tf.zeros([num_chunks, chunk, rows.shape[-1]], rows.dtype)]
+        state = loop(forward, [sums] + rows)
+
+        def grad(d_sums, d_rows=None):
+            def backward(i, state):
+                d_points, d_weights = state
+                chunk_points = points[i]
+                with tf.GradientTape() as tape:
+                    tape.watch([chunk_points] + weights)
+                    values, rows = fn(chunk_points, valid[i], weights)
+                # The segment sum's gradient, without recomputing the sum (its size may be no compile-time constant
+                # in a separate backward program).
+                gathered = tf.gather(d_sums, tf.maximum(ids[i], 0))
+                d_values = tf.where(ids[i][:, None] >= 0, gathered, tf.zeros_like(gathered))
+                d_chunk, *d_weights_chunk = tape.gradient(
+                    [values] + ([] if rows is None else [rows]), [chunk_points] + weights,
+                    output_gradients=[d_values] + ([] if rows is None else [d_rows[i]]),
+                    unconnected_gradients=tf.UnconnectedGradients.ZERO)
+                return (tf.tensor_scatter_nd_update(d_points, [[i]], d_chunk[None]),
+                        [d + x for d, x in zip(d_weights, d_weights_chunk)])
+
+            d_points, d_weights = loop(backward, (tf.zeros_like(points), [tf.zeros_like(w) for w in weights]))
+            return [d_points] + d_weights
+
+        return state, grad
+
+    sums, *rows = run(to_chunks(points, tf.zeros([], points.dtype)), *weights)
+    return sums, (tf.reshape(rows[0], [-1, rows[0].shape[-1]])[:total] if rows else None)
