@@ -11,7 +11,7 @@ install: $(STAMP)
 $(STAMP): setup.py constraints.txt Makefile
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -c constraints.txt -e ".[dev,beam,xla]"
+	$(PY) -m pip install -q -c constraints.txt -e ".[dev,beam,xla,onnx,viz3d]"
 	$(PY) -m pip install -q --no-deps waymo-open-dataset-tf-2-12-0==1.6.7
 	touch $(STAMP)
 

@@ -23,6 +23,10 @@ setup(
         # the newest that supports Python 3.11 and resolves against the TF 2.21 pins; a runner machine may have a
         # newer jax (artifacts stay loadable for 6 months of jaxlib releases, README "GPU and portable XLA export").
         "xla": ["jax==0.10.2", "jaxlib==0.10.2", "flatbuffers>=24.3.25"],
+        # ONNX export for TensorRT and ONNX Runtime (tools/export_onnx.py) and its check against TensorFlow.
+        "onnx": ["tf2onnx==1.17.0", "onnx==1.19.1", "onnxruntime==1.31.1"],
+        # 3D recordings of clouds and flow for the Rerun viewer (tools/predict.py --rerun).
+        "viz3d": ["rerun-sdk==0.41.0"],
         # Training and benchmarks on NVIDIA GPUs: the same TF with its CUDA libraries.
         "gpu": ["tensorflow[and-cuda]==2.21.0"],
     },
