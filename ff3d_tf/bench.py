@@ -21,6 +21,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import math
+import os
 import resource
 import time
 from typing import Callable, Sequence
@@ -226,6 +227,15 @@ def smaps_rollup(path: str = "/proc/self/smaps_rollup") -> dict:
         if len(parts) == 3 and parts[2] == "kB":
             out[parts[0].rstrip(":")] = int(parts[1]) * 1024 / GB
     return {k: out[k] for k in ("Rss", "Pss_Anon", "Pss_File", "Anonymous", "AnonHugePages") if k in out}
+
+
+def pin_cores(cores: int) -> list[int]:
+    """Restricts this process to its first `cores` CPUs (call before TensorFlow starts its thread pools)."""
+    available = sorted(os.sched_getaffinity(0))
+    if not 1 <= cores <= len(available):
+        raise ValueError(f"{cores} cores asked; this process may use {len(available)} CPUs")
+    os.sched_setaffinity(0, available[:cores])
+    return available[:cores]
 
 
 def load_average(path: str = "/proc/loadavg") -> list[str]:

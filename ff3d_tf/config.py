@@ -73,10 +73,20 @@ ABLATED_CLASSES = {"pedestrian": (schema.CLASS_PEDESTRIAN,), "cyclist": (schema.
 CLASS_ABLATIONS = ("none",) + tuple(f"{c}_{mode}" for c in ABLATED_CLASSES for mode in ("stationary", "ignored"))
 
 
+DATA_SOURCES = ("wod", "pair_records")  # data.source
+TRAINING_LABELS = ("human", "pseudo")  # data.labels
+
+
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
     """Reading WOD records and turning them into model input pairs."""
 
+    # wod: WOD Frame TFRecords decoded on the fly; pair_records: decode-once model examples written by
+    # `tools/write_pair_records.py` (from WOD segments or Argoverse 2 logs) or `tools/pseudo_label.py`.
+    source: str = "wod"
+    # The flow that trains the model: human (the boxes' labels) or pseudo (`flow_mps_pseudo_t0` of pair records).
+    # Evaluation always scores against the human labels.
+    labels: str = "human"
     laser_names: tuple[int, ...] = schema.ALL_LASERS  # TOP, FRONT, SIDE_LEFT, SIDE_RIGHT, REAR
     returns: tuple[int, ...] = (1,)  # 1 = first return, 2 = second return
     max_frame_gap_s: float = 0.15  # pairs further apart are skipped (WOD frames are ~0.1 s apart)
@@ -94,6 +104,16 @@ class DataConfig:
     remove_ground_below_z_m: float | None = None  # ground-removal study: drop points below this z (vehicle frame)
 
     def validate(self) -> None:
+        if self.source not in DATA_SOURCES:
+            raise ConfigError(f"data.source={self.source!r} unknown; one of {DATA_SOURCES}")
+        if self.labels not in TRAINING_LABELS:
+            raise ConfigError(f"data.labels={self.labels!r} unknown; one of {TRAINING_LABELS}")
+        if self.labels == "pseudo" and self.source != "pair_records":
+            raise ConfigError("data.labels=pseudo: pseudo-labels live in pair records (data.source=pair_records, "
+                              "written by tools/pseudo_label.py)")
+        if self.source == "pair_records" and not self.ego_motion_compensation:
+            raise ConfigError("data.ego_motion_compensation=false: pair records hold the t-1 cloud already moved "
+                              "into the t0 frame; use data.source=wod for the ego-motion study")
         problem = schema.lidar_selection_problem(self.laser_names, self.returns)
         if problem is not None:
             raise ConfigError(f"data.{problem}")
@@ -175,6 +195,13 @@ class TrainConfig:
     eval_every_steps: int = 1000
     eval_num_batches: int = 4
     seed: int = 0
+    # Multi-worker: a lost worker (dead, stopped or not answering) ends every other worker within this many seconds,
+    # with a message naming it (the collective timeout and the step watchdog of `ff3d_tf.training.trainer`). Keep it
+    # above the longest stretch one worker spends without the others (the chief's periodic evaluation).
+    peer_timeout_s: float = 120.0
+    # Multi-worker: how long a worker waits at start for every other worker to join before it exits naming the
+    # missing ones (workers of one job may start minutes apart).
+    peer_join_timeout_s: float = 600.0
 
     def validate(self) -> None:
         if self.global_batch_size < 1:
@@ -200,6 +227,9 @@ class TrainConfig:
             _in_range(f"train.{name}", getattr(self, name), 1, None)
         _in_range("train.eval_every_steps", self.eval_every_steps, 0, None)  # 0: never
         _in_range("train.seed", self.seed, 0, 2 ** 32 - 1)
+        for name in ("peer_timeout_s", "peer_join_timeout_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"train.{name}={getattr(self, name)}: must be > 0 (seconds)")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -27,15 +27,16 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import schema
+from ff3d_tf.metrics_av2 import BUCKET_EDGES_M as _AV2_BUCKET_EDGES_M, MAX_DISTANCE_M, NUM_BUCKETS
 
 CLASS_KEYS = tuple(schema.CLASS_NAMES[c] for c in sorted(schema.CLASS_NAMES))  # class id order 0..4
 ALL_CLASS_KEYS = CLASS_KEYS + ("all",)
 SUBSETS = ("all", "moving", "stationary")
 MPS_TO_MPH = 2.2369362920544
 SECONDS_PER_FRAME = 0.1  # AV2-style metrics are in metres per 0.1 s
-BUCKET_EDGES_M = np.round(np.arange(0.0, 2.0 + 1e-9, 0.04), 6)  # 0, 0.04, ..., 2.0 -> 50 buckets + [2.0, inf)
-NUM_BUCKETS = len(BUCKET_EDGES_M)
-AV2_MAX_DISTANCE_M = 35.0  # the Argoverse 2 evaluator's crop: max(|x|, |y|) < 35 m around the ego vehicle
+# The Argoverse 2 evaluator's speed buckets (0, 0.04, ..., 2.0 m per frame, then [2.0, inf)) and crop.
+BUCKET_EDGES_M = _AV2_BUCKET_EDGES_M[:-1]  # without the last edge, inf
+AV2_MAX_DISTANCE_M = MAX_DISTANCE_M
 
 
 class SceneFlowMetrics(keras.metrics.Metric):

@@ -43,3 +43,15 @@ TINY_OVERRIDES = ("grid.num_pillars_x=32", "grid.num_pillars_y=32", "grid.x_rang
 def tiny_config():
     from ff3d_tf.config import load_config
     return load_config(None, TINY_OVERRIDES)
+
+
+@pytest.fixture(scope="session")
+def av2_sample_records(tiny_config, tmp_path_factory):
+    """Argoverse 2 challenge pair records of the real sample log (one pair: sweep 0 with sweep 1)."""
+    from ff3d_tf.data import pair_records
+    from ff3d_tf.labels import av2
+    out = str(tmp_path_factory.mktemp("av2_records"))
+    manifest = av2.records_manifest(tiny_config)
+    pair_records.write_manifest(out, manifest)
+    assert av2.write_log_records(AV2_LOG, out, tiny_config, manifest)["pairs"] == 1
+    return out

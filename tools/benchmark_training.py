@@ -45,15 +45,6 @@ def _args(argv=None):
     return p.parse_args(argv)
 
 
-def _pin(cores: int) -> list[int]:
-    """Restricts this process to `cores` CPUs (before TensorFlow starts its thread pools)."""
-    available = sorted(os.sched_getaffinity(0))
-    if cores > len(available):
-        sys.exit(f"--cores {cores}: only {len(available)} CPUs available to this process")
-    os.sched_setaffinity(0, available[:cores])
-    return available[:cores]
-
-
 def input_pairs_per_s(files, cfg, cores: int, batches: int) -> dict:
     """Pairs/s of the training input with tf.data's own thread pool of `cores` threads."""
     import tensorflow as tf
@@ -153,7 +144,10 @@ def _synthetic_segments(args, out_dir: str) -> list[str]:
 def main(argv=None):
     args = _args(argv)
     if args.input_child:
-        pinned = _pin(args.input_child)
+        try:
+            pinned = bench.pin_cores(args.input_child)
+        except ValueError as e:
+            sys.exit(f"--cores: {e}")
         cfg = _common.load(args)
         from ff3d_tf.data.pairs import list_segment_files
         result = {**input_pairs_per_s(list_segment_files(args.data_dir), cfg, args.input_child, args.input_batches),

@@ -1,7 +1,11 @@
 """Evaluate a checkpoint or SavedModel on validation records; prints the paper's tables beside the zero-flow baseline.
 
 python tools/eval.py --config C --data_dir VAL --checkpoint MODEL_DIR_OR_SAVED_MODEL [--out_dir O]
+python tools/eval.py --protocol av2 --set data.source=pair_records --data_dir AV2_VAL_RECORDS --checkpoint M
+    (the Argoverse 2 2024 challenge: three-way and bucketed normalized EPE in metres per frame over the eval mask,
+    35 m box, no ground; and the paper's tables in m/s on the same points. Records: tools/write_pair_records.py)
 """
+import json
 import os
 
 import _common
@@ -9,7 +13,8 @@ import _common
 from ff3d_tf import metrics as M
 from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.inference.predictor import load_predictor
-from ff3d_tf.training.evaluation import evaluate, write_results
+from ff3d_tf import metrics_av2
+from ff3d_tf.training.evaluation import evaluate, evaluate_av2, write_results
 
 
 def main():
@@ -18,10 +23,16 @@ def main():
     p.add_argument("--checkpoint", required=True, help="model_dir, checkpoint prefix, or SavedModel directory")
     p.add_argument("--out_dir", default=None, help="where metrics.json / metrics_zero_flow.json / metrics.csv go")
     p.add_argument("--max_pairs", type=int, default=0)
+    p.add_argument("--protocol", choices=("paper", "av2"), default="paper")
     args = p.parse_args()
     cfg = _common.load(args)
     files = list_segment_files(args.data_dir)
     predictor = load_predictor(cfg, args.checkpoint)
+    import tensorflow as tf
+    out_dir = args.out_dir or (args.checkpoint if tf.io.gfile.isdir(args.checkpoint) else
+                               os.path.dirname(args.checkpoint))
+    if args.protocol == "av2":
+        return _av2(cfg, files, predictor, args.max_pairs, out_dir)
     result, zero = evaluate(cfg, files, predictor, max_pairs=args.max_pairs,
                             log_fn=lambda s: print(s, flush=True))
     print(M.format_paper_table(result, "FastFlow3D (this checkpoint), mean L2 error"))
@@ -29,11 +40,25 @@ def main():
     print()
     print(M.format_paper_table(zero, "zero-flow baseline (for context)"))
     print(M.format_extra_tables(zero))
-    import tensorflow as tf
-    out_dir = args.out_dir or (args.checkpoint if tf.io.gfile.isdir(args.checkpoint) else
-                               os.path.dirname(args.checkpoint))
     write_results(out_dir, result, zero, cfg)
     print(f"wrote {out_dir}/metrics.json, metrics_zero_flow.json, metrics.csv")
+
+
+def _av2(cfg, files, predictor, max_pairs, out_dir):
+    r = evaluate_av2(cfg, files, predictor, max_pairs=max_pairs, log_fn=lambda s: print(s, flush=True))
+    print(metrics_av2.format_challenge_table(r["model"], "FastFlow3D (this checkpoint)"))
+    print()
+    print(metrics_av2.format_challenge_table(r["zero_flow"], "zero flow"))
+    print()
+    print(M.format_paper_table(r["paper_model"], "FastFlow3D on the same points, paper classes, m/s"))
+    print(M.format_paper_table(r["paper_zero_flow"], "zero flow on the same points, paper classes, m/s"))
+    if r["points_without_prediction"]:
+        print(f"{r['points_without_prediction']} eval-mask points lie outside the model's grid: scored with flow 0")
+    os.makedirs(out_dir, exist_ok=True)
+    path = os.path.join(out_dir, "metrics_av2.json")
+    with open(path, "w") as f:
+        json.dump(r, f, indent=1, sort_keys=True, default=float)
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

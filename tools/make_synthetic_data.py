@@ -1,7 +1,10 @@
-"""Synthetic WOD-format segments (the embedded default): python tools/make_synthetic_data.py --out_dir D
+"""Synthetic data in a dataset's exact format (the embedded defaults).
 
-Writes one TFRecord of complete WOD v1 `Frame`s per segment (all five lidars, scene-flow labels). Deterministic by seed;
-skips segment files that already exist (resumable).
+python tools/make_synthetic_data.py --out_dir D                 WOD: one TFRecord of complete WOD v1 `Frame`s per
+                                                                segment (all five lidars, scene-flow labels)
+python tools/make_synthetic_data.py --format av2 --out_dir D    Argoverse 2: sensor logs D/<split>/<log_id>/ (lidar
+                                                                sweeps, cuboids, poses, ground raster, map)
+Deterministic by seed; skips segments and logs that already exist (resumable).
 """
 import argparse
 import os
@@ -19,7 +22,22 @@ def main():
     p.add_argument("--frames_per_segment", type=int, default=20)
     p.add_argument("--seed", type=int, default=0, help="segment k uses seed + k")
     p.add_argument("--lidar_scale", type=float, default=1.0, help="< 1 shrinks the range images (tests)")
+    p.add_argument("--format", choices=("wod", "av2"), default="wod")
+    p.add_argument("--num_logs", type=int, default=2, help="av2: logs to write")
+    p.add_argument("--sweeps_per_log", type=int, default=6, help="av2")
+    p.add_argument("--points_per_sweep", type=int, default=6000, help="av2")
+    p.add_argument("--split", default="train", help="av2: the split folder under --out_dir")
     args = p.parse_args()
+    if args.format == "av2":
+        from ff3d_tf.data import synthetic_av2
+        t0 = time.time()
+
+        def progress(k, n, log_dir, skipped):
+            print(f"[{k + 1}/{n}] {'exists, kept' if skipped else 'wrote'}: {log_dir} "
+                  f"ETA {(time.time() - t0) / (k + 1) * (n - k - 1):.0f}s", flush=True)
+        synthetic_av2.write_synthetic_split(args.out_dir, args.num_logs, args.split, args.sweeps_per_log, args.seed,
+                                            args.points_per_sweep, progress=progress)
+        return
     os.makedirs(args.out_dir, exist_ok=True)
     t0, frames = time.time(), 0
     for k in range(args.num_segments):

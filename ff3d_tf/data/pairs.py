@@ -15,8 +15,9 @@ import tensorflow as tf
 
 from ff3d_tf import geometry, schema
 from ff3d_tf.config import ABLATED_CLASSES, ExperimentConfig
-from ff3d_tf.data import waymo
+from ff3d_tf.data import pair_records, waymo
 from ff3d_tf.data.wod_decode import DecodeOptions
+from ff3d_tf.data.wod_errors import parse_tagged_error
 
 # Bucket sizes are base * {1, 1.5, 2, 3, 4, 6, 8, 12, ...}: at most 50% padding, ~2 buckets per doubling.
 _BUCKET_MULTIPLIERS = np.array(sorted({m * 2 ** k for k in range(0, 14) for m in (1.0, 1.5)}))
@@ -72,8 +73,19 @@ def make_pair(frame_tm1: dict, frame_t0: dict, cfg: ExperimentConfig, seed=None)
     return ex
 
 
+_T0_KEYS = schema.PAIR_T0_POINT_KEYS + schema.PAIR_T0_EXTRA_POINT_KEYS  # every per-t0-point key a pair may hold
+
+
 def _keep(ex: dict, keep_t0, keep_tm1) -> dict:
-    return {k: tf.boolean_mask(v, keep_t0 if k in schema.PAIR_T0_POINT_KEYS else keep_tm1) for k, v in ex.items()}
+    return {k: tf.boolean_mask(v, keep_t0 if k in _T0_KEYS else keep_tm1) for k, v in ex.items()}
+
+
+def raw_pair_config(cfg: ExperimentConfig) -> ExperimentConfig:
+    """`cfg` with every study off and no crop: pairs as pair records store them (the reader applies `cfg`'s)."""
+    import dataclasses
+    data = dataclasses.replace(cfg.data, source="wod", labels="human", crop_to_grid=False, class_ablation="none",
+                               point_keep_fraction=1.0, remove_ground_below_z_m=None, ego_motion_compensation=True)
+    return dataclasses.replace(cfg, data=data)
 
 
 def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
@@ -107,12 +119,18 @@ def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
 @contextlib.contextmanager
 def input_errors_named(files: list[str], options: DecodeOptions | None = None):
     """Turns a decoding error of the input pipeline over `files` into a FrameDecodeError naming file, record and
-    field (`waymo.pipeline_error`; `options` as the pipeline decodes, see `decode_options`); any other error passes
-    unchanged."""
+    field (`waymo.pipeline_error`; `options` as the pipeline decodes, see `decode_options`; pair records by
+    `pair_records.locate_fault`); any other error passes unchanged."""
     try:
         yield
     except tf.errors.OpError as err:
-        bad = waymo.pipeline_error(err, list(files), options)
+        files = list(files)
+        if files and all(f.endswith(pair_records.FILE_SUFFIX) for f in files) and \
+                parse_tagged_error(err.message) is None:
+            bad = pair_records.locate_fault(files) if isinstance(
+                err, (tf.errors.DataLossError, tf.errors.InvalidArgumentError)) else None
+        else:
+            bad = waymo.pipeline_error(err, files, options)
         if bad is None:
             raise
         raise bad from None
@@ -142,13 +160,18 @@ def consecutive_frames(frames: tf.data.Dataset) -> tf.data.Dataset:
     return pairs.filter(lambda f_tm1, f_t0, have_tm1: have_tm1).map(lambda f_tm1, f_t0, have_tm1: (f_tm1, f_t0))
 
 
-def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool):
+def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool, metadata: bool = False):
     frames = _frames_dataset(path, cfg, inference_only, skip_bad_records)
     max_gap_us = int(round(cfg.data.max_frame_gap_s * 1e6))
 
     def to_example(f_tm1, f_t0):
         seed = tf.stack([tf.cast(f_t0["timestamp_micros"] % 2147483647, tf.int32), 7])
-        return make_pair(f_tm1, f_t0, cfg, seed)
+        ex = make_pair(f_tm1, f_t0, cfg, seed)
+        if metadata:
+            ex[pair_records.TIMESTAMP_KEY] = f_t0["timestamp_micros"] * 1000
+            ex[pair_records.PARTNER_TIMESTAMP_KEY] = f_tm1["timestamp_micros"] * 1000
+            ex[pair_records.SEQUENCE_KEY] = tf.strings.split(path, "/")[-1]
+        return ex
 
     def close_in_time(f_tm1, f_t0):
         gap_us = f_t0["timestamp_micros"] - f_tm1["timestamp_micros"]
@@ -158,13 +181,68 @@ def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_r
     return pairs.map(to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 
+def _pairs_of_records(path, cfg: ExperimentConfig, manifest, extras: tuple, metadata: bool, skip: bool,
+                      training_labels: bool):
+    wanted = set(extras) | ({"flow_mps_pseudo_t0"} if training_labels and cfg.data.labels == "pseudo" else set())
+    read = tuple(k for k in schema.PAIR_T0_EXTRA_POINT_KEYS if k in wanted)
+
+    def to_example(record):
+        points = {k: record[k] for k in schema.PAIR_T0_POINT_KEYS + schema.PAIR_TM1_POINT_KEYS + read}
+        if "flow_mps_pseudo_t0" in read and training_labels and cfg.data.labels == "pseudo":
+            points["flow_mps_t0"] = points["flow_mps_pseudo_t0"]
+            if "flow_mps_pseudo_t0" not in extras:
+                del points["flow_mps_pseudo_t0"]
+        micros = record[pair_records.TIMESTAMP_KEY] // 1000  # the seed of the decoding path (`_pairs_of_file`)
+        ex = _apply_studies(points, cfg, tf.stack([tf.cast(micros % 2147483647, tf.int32), 7]))
+        ex["pose_t0"], ex["pose_tm1"] = record["pose_t0"], record["pose_tm1"]
+        ex["num_points_t0"] = tf.shape(ex["points_xyz_t0"])[0]
+        ex["num_points_tm1"] = tf.shape(ex["points_xyz_tm1_in_t0"])[0]
+        if metadata:
+            ex.update({k: record[k] for k in pair_records.METADATA_KEYS})
+        return ex
+
+    return pair_records.records_dataset(path, manifest, read, skip).map(
+        to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+
+
+def check_records_match(manifest, cfg: ExperimentConfig, where: str) -> None:
+    """ConfigError unless pair records written as `manifest` can serve `cfg` (same lidars and returns, labels)."""
+    from ff3d_tf.config import ConfigError
+    d = cfg.data
+    if manifest.source == "wod" and (tuple(sorted(manifest.laser_names)), tuple(sorted(manifest.returns))) != \
+            (tuple(sorted(d.laser_names)), tuple(sorted(d.returns))):
+        raise ConfigError(f"{where}: the pair records hold lasers {manifest.laser_names}, returns "
+                          f"{manifest.returns}; the config asks for data.laser_names={d.laser_names}, "
+                          f"data.returns={d.returns}: write records with that selection, or change the config")
+    if d.labels == "human" and not manifest.human_labels:
+        raise ConfigError(f"{where}: these pair records hold no human flow labels (raw LiDAR): train on their "
+                          "pseudo-labels (tools/pseudo_label.py, data.labels=pseudo); evaluation needs labelled data")
+    if d.labels == "pseudo" and "flow_mps_pseudo_t0" not in manifest.extras:
+        raise ConfigError(f"{where}: data.labels=pseudo, but these records hold no pseudo-labels "
+                          "(write them with tools/pseudo_label.py)")
+
+
 def pair_dataset(files: list[str], cfg: ExperimentConfig, *, inference_only: bool = False,
-                 skip_bad_records: bool | None = None) -> tf.data.Dataset:
-    """Unbatched model input examples of all consecutive frame pairs of the given segment files, in file order."""
+                 skip_bad_records: bool | None = None, extras: tuple[str, ...] = (), metadata: bool = False,
+                 training_labels: bool = False) -> tf.data.Dataset:
+    """Unbatched model input examples of all consecutive frame pairs of the given files, in file order.
+
+    `cfg.data.source` says what the files are: WOD segments (decoded here) or pair records. Pair records may also
+    give `extras` (`schema.PAIR_T0_EXTRA_POINT_KEYS`); `metadata` adds `pair_records.METADATA_KEYS` (either source).
+    `training_labels`: the flow is the one `cfg.data.labels` trains on (pseudo-labels replace `flow_mps_t0`);
+    otherwise always the human labels, which evaluation scores against.
+    """
     skip = cfg.data.skip_bad_records if skip_bad_records is None else skip_bad_records
     files_ds = tf.data.Dataset.from_tensor_slices(list(files))
-    return files_ds.interleave(lambda f: _pairs_of_file(f, cfg, inference_only, skip), cycle_length=2,
-                               num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+    if cfg.data.source == "pair_records":
+        manifest = pair_records.manifest_of_files(list(files))
+        check_records_match(manifest, cfg, os.path.dirname(files[0]))
+        fn = lambda f: _pairs_of_records(f, cfg, manifest, tuple(extras), metadata, skip, training_labels)  # noqa
+    else:
+        if extras:
+            raise ValueError(f"extras {extras} come with pair records (data.source=pair_records)")
+        fn = lambda f: _pairs_of_file(f, cfg, inference_only, skip, metadata)  # noqa: E731
+    return files_ds.interleave(fn, cycle_length=2, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 
 def padded_singletons(ds: tf.data.Dataset, bucket_base: int):
@@ -172,7 +250,7 @@ def padded_singletons(ds: tf.data.Dataset, bucket_base: int):
     input without a tf.data pipeline per example."""
     for batch in batch_examples(ds, 1, bucket_base).prefetch(2):
         n, n_tm1 = int(batch["num_points_t0"][0]), int(batch["num_points_tm1"][0])
-        length = {**dict.fromkeys(schema.PAIR_T0_POINT_KEYS, n), **dict.fromkeys(schema.PAIR_TM1_POINT_KEYS, n_tm1)}
+        length = {**dict.fromkeys(_T0_KEYS, n), **dict.fromkeys(schema.PAIR_TM1_POINT_KEYS, n_tm1)}
         yield batch, {k: v[0, :length[k]] if k in length else v[0]
                       for k, v in batch.items() if not k.startswith("point_mask_")}
 
@@ -183,16 +261,19 @@ def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_
 
     def pad(batch):
         out = dict(batch)
-        for suffix, keys in (("t0", schema.PAIR_T0_POINT_KEYS), ("tm1", schema.PAIR_TM1_POINT_KEYS)):
+        for suffix, keys in (("t0", _T0_KEYS), ("tm1", schema.PAIR_TM1_POINT_KEYS)):
             n = tf.shape(batch[keys[0]])[1]
             target = bucket_size_tf(n, bucket_base)
-            for k in keys:
+            for k in (k for k in keys if k in batch):
                 v = batch[k]
                 paddings = [[0, 0], [0, target - n]] + [[0, 0]] * (len(v.shape) - 2)
-                out[k] = tf.pad(v, paddings, constant_values=-1 if k == "class_id_t0" else 0)
+                out[k] = tf.pad(v, paddings, constant_values=-1 if k in ("class_id_t0", "category_t0") else
+                                tf.zeros([], v.dtype))
             out[f"point_mask_{suffix}"] = tf.sequence_mask(batch[f"num_points_{suffix}"], target)
         # padded_batch fills class ids with 0 (background); the masks say what is real, and class of padding is -1.
-        out["class_id_t0"] = tf.where(out["point_mask_t0"], out["class_id_t0"], -1)
+        for k in ("class_id_t0", "category_t0"):
+            if k in out:
+                out[k] = tf.where(out["point_mask_t0"], out[k], -1)
         return out
 
     return ds.map(pad, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)

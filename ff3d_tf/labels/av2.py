@@ -1,14 +1,31 @@
 """Argoverse 2 pairs labelled by the paper's rule: flow of each t0 point from the cuboids of two sweeps
-(`ff3d_tf.labels.box_flow.bootstrap_flow`), read through `ff3d_tf.data.argoverse2`."""
+(`ff3d_tf.labels.box_flow.bootstrap_flow`), read through `ff3d_tf.data.argoverse2`; and the job that writes them as
+pair records (`ff3d_tf.data.pair_records`) for training and for the Argoverse 2 challenge's evaluation.
+
+Records for the challenge pair each sweep t (the t0 cloud) with the NEXT sweep t+1 (its partner, in the t-1 slot):
+the challenge scores the points of sweep t with their displacement to sweep t+1. The label is the model's quantity,
+the motion from the partner cloud to the t0 cloud divided by the gap, (p_t - p_t+1) / dt, so it is minus the
+velocity; the challenge's flow (metres to the next sweep) is -flow_mps_t0 * dt. Each record also holds the ground
+mask (`is_ground_t0`, the log's ground raster) and the Argoverse category of every point (`category_t0`, the
+`classes` values of Argoverse's own flow labels; 0 = in no cuboid). The last sweep of a log has no partner.
+"""
 from __future__ import annotations
 
+import functools
+import logging
 import os
+import time
 
+import numpy as np
 import tensorflow as tf
 
-from ff3d_tf.data import argoverse2
+from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.data import argoverse2, beam_job, pair_records, pairs
 from ff3d_tf.data.pairs import make_pair
-from ff3d_tf.labels.box_flow import bootstrap_flow
+from ff3d_tf.labels.box_flow import bootstrap_flow, points_in_boxes
+
+_LOG = logging.getLogger(__name__)
+AV2_EXTRAS = ("is_ground_t0", "category_t0")
 
 
 def labelled_pair(log_dir: str, index: int = 1) -> tuple[dict, dict]:
@@ -31,3 +48,100 @@ def model_example(log_dir: str, cfg, index: int = 1) -> dict:
     ex = make_pair({k: tf.constant(v) for k, v in f_tm1.items()}, {k: tf.constant(v) for k, v in f_t0.items()}, cfg,
                    seed=tf.constant([1, 7]))
     return {k: v.numpy() for k, v in ex.items()}
+
+
+def list_logs(path: str) -> list[str]:
+    """The log directories under `path` (an Argoverse 2 split directory, or one log directory)."""
+    if os.path.isdir(os.path.join(path, "sensors", "lidar")):
+        return [path]
+    if not os.path.isdir(path):
+        raise FileNotFoundError(f"{path}: no such directory (expected an Argoverse 2 split or log directory)")
+    logs = sorted(os.path.join(path, d) for d in os.listdir(path)
+                  if os.path.isdir(os.path.join(path, d, "sensors", "lidar")))
+    if not logs:
+        raise FileNotFoundError(f"{path}: no Argoverse 2 logs (<log_id>/sensors/lidar/*.feather) in it")
+    return logs
+
+
+def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig) -> dict:
+    """The pair record contents (NumPy) of sweep `index` (t0) and sweep `index + 1` (its partner), labelled by the
+    cuboids with Argoverse's margin, with `AV2_EXTRAS` and `pair_records.METADATA_KEYS`; every point kept."""
+    stamps = argoverse2.sweep_timestamps(log_dir)
+    if not 0 <= index < len(stamps) - 1:
+        raise argoverse2.Argoverse2FormatError(os.path.join(log_dir, "sensors", "lidar"), "file",
+                                               f"sweep {index} has no next sweep; the log has {len(stamps)}")
+    ts_t0, ts_next = stamps[index], stamps[index + 1]
+    f_t0, f_next = argoverse2.read_sweep(log_dir, ts_t0), argoverse2.read_sweep(log_dir, ts_next)
+    for ts, f in ((ts_t0, f_t0), (ts_next, f_next)):
+        if len(f["points_xyz"]) == 0:
+            raise argoverse2.Argoverse2FormatError(os.path.join(log_dir, "sensors", "lidar", f"{ts}.feather"),
+                                                   "x", "empty sweep: no points")
+    boxes_t0 = argoverse2.cuboids(log_dir, ts_t0)
+    dt_s = (ts_next - ts_t0) * 1e-9
+    flow, cls = bootstrap_flow(f_t0["points_xyz"], boxes_t0, argoverse2.cuboids(log_dir, ts_next), f_t0["pose"],
+                               f_next["pose"], dt_s, enlarge_m=argoverse2.CUBOID_MARGIN_M)
+    f_t0["flow_mps"], f_t0["class_id"] = flow, cls
+    ex = make_pair({k: tf.constant(v) for k, v in f_next.items()}, {k: tf.constant(v) for k, v in f_t0.items()},
+                   pairs.raw_pair_config(cfg))
+    ex = {k: v.numpy() for k, v in ex.items()}
+    owner = points_in_boxes(f_t0["points_xyz"], boxes_t0, enlarge_m=argoverse2.CUBOID_MARGIN_M)
+    categories = np.array([argoverse2.scene_flow_category_index(str(c)) for c in boxes_t0["category"]] + [0],
+                          np.int32)
+    ex["category_t0"] = categories[owner]  # owner -1 (no cuboid) reads the appended 0
+    ex["is_ground_t0"] = argoverse2.is_ground(log_dir, f_t0["points_xyz"], f_t0["pose"])
+    ex[pair_records.TIMESTAMP_KEY], ex[pair_records.PARTNER_TIMESTAMP_KEY] = ts_t0, ts_next
+    ex[pair_records.SEQUENCE_KEY] = os.path.basename(os.path.normpath(log_dir))
+    return ex
+
+
+def records_manifest(cfg: ExperimentConfig, precision: str = "exact", compression: str = "none",
+                     written_by: str = "") -> pair_records.Manifest:
+    return pair_records.Manifest(source="av2", laser_names=(1, 2), returns=(1,), max_frame_gap_s=cfg.data.max_frame_gap_s,
+                                 precision=precision, compression=compression, extras=AV2_EXTRAS, partner="next",
+                                 written_by=written_by).validate("<manifest>")
+
+
+def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifest: pair_records.Manifest) -> dict:
+    """Pair records of one log (`challenge_pair` of every sweep but the last) into `<out_dir>/<log_id>.pairs.tfrecord`
+    (atomically; an existing output is kept: resumable). Returns counts."""
+    log_id = os.path.basename(os.path.normpath(log_dir))
+    out_path = os.path.join(out_dir, pair_records.records_file_name(log_id))
+    if tf.io.gfile.exists(out_path):
+        _LOG.info("exists, skipped: %s", out_path)
+        return {"already_done": 1}
+    t0 = time.time()
+    counts = {"pairs": 0, "points_t0": 0, "skipped_pairs": 0}
+    num_sweeps = len(argoverse2.sweep_timestamps(log_dir))
+    max_gap_ns = cfg.data.max_frame_gap_s * 1e9
+
+    def records():
+        for index in range(num_sweeps - 1):
+            try:
+                ex = challenge_pair(log_dir, index, cfg)
+            except argoverse2.Argoverse2FormatError as err:
+                if not cfg.data.skip_bad_records:
+                    raise
+                _LOG.warning("skipped: %s", err)
+                counts["skipped_pairs"] += 1
+                continue
+            if ex[pair_records.PARTNER_TIMESTAMP_KEY] - ex[pair_records.TIMESTAMP_KEY] > max_gap_ns:
+                counts["skipped_pairs"] += 1  # a gap in the log: not a pair (data.max_frame_gap_s)
+                continue
+            counts["pairs"] += 1
+            counts["points_t0"] += int(ex["num_points_t0"])
+            yield pair_records.serialize_pair(ex, manifest.precision, AV2_EXTRAS)
+
+    pair_records.write_records_atomically(out_path, records(), manifest.compression)
+    counts["bytes"] = tf.io.gfile.stat(out_path).length
+    counts["seconds"] = time.time() - t0
+    return counts
+
+
+def run_records_job(logs: list[str], out_dir: str, cfg: ExperimentConfig, precision: str = "exact",
+                    compression: str = "none", beam_args: list[str] | None = None, written_by: str = "") -> dict:
+    """Pair records of every log into `out_dir` (a Beam job, one element per log; `ff3d_tf.data.beam_job`)."""
+    manifest = records_manifest(cfg, precision, compression, written_by)
+    pair_records.write_manifest(out_dir, manifest)
+    return beam_job.run_per_input(list(logs), functools.partial(write_log_records, out_dir=out_dir, cfg=cfg,
+                                                                manifest=manifest),
+                                  out_dir, "write_pair_records", beam_args)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import json
 import logging
 import os
 import time
@@ -20,7 +19,7 @@ import numpy as np
 
 from ff3d_tf import schema
 from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow
-from ff3d_tf.data import waymo
+from ff3d_tf.data import beam_job, waymo
 from ff3d_tf.data.wod_decode import DecodeOptions
 from ff3d_tf.data.wod_format import encode_matrix
 from ff3d_tf.parallel import ordered_map
@@ -185,52 +184,17 @@ def annotate_segment(in_path: str, out_path: str, laser_names=schema.ALL_LASERS,
     return totals
 
 
+def _annotate_into(out_dir: str, laser_names, returns, skip_bad_records: bool, path: str) -> dict:
+    return annotate_segment(path, os.path.join(out_dir, os.path.basename(path)), laser_names, returns,
+                            skip_bad_records)
+
+
 def run_pipeline(input_files: list[str], out_dir: str, beam_args: list[str] | None = None,
                  laser_names=schema.ALL_LASERS, returns=(1, 2), skip_bad_records: bool = False) -> dict:
-    """Beam pipeline (DirectRunner unless the standard Beam options say otherwise); returns the summed counts.
+    """Beam pipeline (`ff3d_tf.data.beam_job`: one element per segment, resumable); returns the summed counts.
 
     `--direct_num_workers=N --direct_running_mode=multi_processing` annotates N segments at once on one machine.
     """
-    import apache_beam as beam
-    import tensorflow as tf
-    from apache_beam.options.pipeline_options import PipelineOptions
-
-    result_path = os.path.join(out_dir, "annotation_counts.json")
-    tf.io.gfile.makedirs(out_dir)
-
-    class AnnotateSegment(beam.DoFn):
-        def process(self, path):
-            out_path = os.path.join(out_dir, os.path.basename(path))
-            counts = annotate_segment(path, out_path, laser_names, returns, skip_bad_records)
-            for k, v in counts.items():
-                beam.metrics.Metrics.counter("annotate_flow", k).inc(int(v))
-            _LOG.info("segment done: %s %s", out_path, counts)
-            yield counts
-
-    def merge(all_counts):
-        out = {}
-        for c in all_counts:
-            for k, v in c.items():
-                out[k] = out.get(k, 0) + v
-        return out
-
-    beam_args = list(beam_args or [])
-    if not any(a.startswith("--runner") for a in beam_args):
-        beam_args.append("--runner=DirectRunner")  # not Beam's default Prism runner, which downloads a binary
-    options = PipelineOptions(beam_args)
-    with beam.Pipeline(options=options) as p:
-        (p | "Segments" >> beam.Create(list(input_files))
-           | "Reshuffle" >> beam.Reshuffle()
-           | "Annotate" >> beam.ParDo(AnnotateSegment())
-           | "Sum" >> beam.combiners.ToList()
-           | "Merge" >> beam.Map(merge)
-           | "Write" >> beam.Map(_write_json, result_path))
-    with tf.io.gfile.GFile(result_path) as f:
-        return json.load(f)
-
-
-def _write_json(obj, path):
-    import tensorflow as tf
-    with tf.io.gfile.GFile(path, "w") as f:
-        json.dump(obj, f, indent=1, sort_keys=True)
-    return path
+    return beam_job.run_per_input(
+        list(input_files), functools.partial(_annotate_into, out_dir, laser_names, returns, skip_bad_records),
+        out_dir, "annotate_flow", beam_args, result_name="annotation_counts.json")

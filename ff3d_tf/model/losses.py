@@ -1,4 +1,6 @@
-"""Training loss (paper Sec. 4 and appendix): mean L2 error over labelled points, background weighted 0.1."""
+"""Training losses. Human labels (paper Sec. 4 and appendix): mean L2 error over labelled points, background weighted
+0.1. Pseudo-labels (ZeroFlow, Vedder et al., ICLR 2024): mean L2 error over every point, each scaled by its
+pseudo-label speed (`speed_scale`)."""
 from __future__ import annotations
 
 import tensorflow as tf
@@ -26,13 +28,40 @@ def per_sample_flow_loss(flow_true_mps, flow_pred_mps, class_id, point_valid, ba
     return tf.reduce_sum(w * l2, -1) / tf.maximum(labelled, 1.0)
 
 
-def batch_flow_loss(batch, outputs, background_weight: float, global_batch_size: int):
-    """One replica's training loss: `per_sample_flow_loss` over the points that are real (`point_mask_t0`) and valid
-    for the model, summed over the batch and divided by the global batch (`tf.nn.compute_average_loss`).
+# ZeroFlow's "fast mover" scale: 0.1 below 0.5 m/s, 1 above 1 m/s, linear between: max(0.1, min(1, 1.8 s - 0.8)) with
+# s the pseudo-label speed in m/s. The authors' code (kylevedder/zeroflow, models/fast_flow_3d.py,
+# FastFlow3DDistillationLoss) computes s in m/s from flow per 0.1 s frame, and writes min(0.1, max(1.8 s - 0.8, 1)),
+# which is 0.1 for every point (the known bug); this is the formula its comment and the paper describe.
+SPEED_SCALE_MIN, SPEED_SCALE_SLOPE_PER_MPS, SPEED_SCALE_OFFSET = 0.1, 1.8, 0.8
 
-    batch: flow_mps_t0 [B,N,3], class_id_t0 [B,N], point_mask_t0 [B,N]; outputs: the model's flow_mps, point_valid.
+
+def speed_scale(flow_mps):
+    """[...]: ZeroFlow's per-point loss scale from the pseudo-label flow [..., 3] in m/s."""
+    speed_mps = tf.norm(flow_mps, axis=-1)
+    return tf.clip_by_value(SPEED_SCALE_SLOPE_PER_MPS * speed_mps - SPEED_SCALE_OFFSET, SPEED_SCALE_MIN, 1.0)
+
+
+def per_sample_distillation_loss(flow_pseudo_mps, flow_pred_mps, point_valid):
+    """[B] loss: mean over the valid points of `speed_scale(pseudo) * ||pred - pseudo||_2` (ZeroFlow); 0 for a
+    sample without valid points. Every point counts: pseudo-labels have no class."""
+    w = tf.where(point_valid, speed_scale(flow_pseudo_mps), 0.0)
+    l2 = tf.sqrt(tf.reduce_sum(tf.square(tf.cast(flow_pred_mps, tf.float32) - flow_pseudo_mps), -1) + 1e-12)
+    count = tf.reduce_sum(tf.cast(point_valid, tf.float32), -1)
+    return tf.reduce_sum(w * l2, -1) / tf.maximum(count, 1.0)
+
+
+def batch_flow_loss(batch, outputs, background_weight: float, global_batch_size: int, pseudo_labels: bool = False):
+    """One replica's training loss: `per_sample_flow_loss` (or, for `pseudo_labels`,
+    `per_sample_distillation_loss`) over the points that are real (`point_mask_t0`) and valid for the model, summed
+    over the batch and divided by the global batch (`tf.nn.compute_average_loss`).
+
+    batch: flow_mps_t0 [B,N,3] (the pseudo-labels when training on them), class_id_t0 [B,N], point_mask_t0 [B,N];
+    outputs: the model's flow_mps, point_valid.
     """
     valid = outputs["point_valid"] & batch["point_mask_t0"]
-    per_sample = per_sample_flow_loss(batch["flow_mps_t0"], outputs["flow_mps"], batch["class_id_t0"], valid,
-                                      background_weight)
+    if pseudo_labels:
+        per_sample = per_sample_distillation_loss(batch["flow_mps_t0"], outputs["flow_mps"], valid)
+    else:
+        per_sample = per_sample_flow_loss(batch["flow_mps_t0"], outputs["flow_mps"], batch["class_id_t0"], valid,
+                                          background_weight)
     return tf.nn.compute_average_loss(per_sample, global_batch_size=global_batch_size)

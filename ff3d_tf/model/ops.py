@@ -1,5 +1,6 @@
 """The model's operations that are not layers: the point encoder's chunk loop (`chunked_segment_sum`, `POINT_CHUNK`
-points at a time by default) and two matrix products shaped for XLA (`dense_last_axis`, `narrow_matmul`).
+points at a time by default, or the whole cloud at once with `ONE_CHUNK`) and two matrix products shaped for XLA
+(`dense_last_axis`, `narrow_matmul`).
 
 Notation as in `ff3d_tf.model.layers`: P points (flattened over the batch), C channels.
 """
@@ -10,6 +11,10 @@ import tensorflow as tf
 # Points per chunk of the point encoder's loop: bounds the [chunk, C] feature memory at any cloud size; 65,536 keeps
 # a chunk's traffic in cache (faster at 1M points than 262,144: benchmarks/latency_cpu_1m.json).
 POINT_CHUNK = 1 << 16
+# A chunk size that no int32 point count exceeds: the whole cloud is one chunk, and the loop is left out of the graph
+# also when the point count is known only at run time (a static count of one chunk always runs without a loop). The
+# results are those of any chunk size; the graph has no while loop (the loop-free ONNX export for TensorRT).
+ONE_CHUNK = (1 << 31) - 1
 
 
 def dense_last_axis(x, kernel):
@@ -47,12 +52,15 @@ def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segme
     automatic one of a tf.while_loop keeps every chunk's intermediates in TensorLists, which may not leave an XLA
     program (the point stages' forward and backward are separate programs in compile mode "hybrid"). A static count
     of one chunk runs without a loop; more always run in a tf.while_loop, where XLA adds into the sums in place
-    (unrolled, it reassociates the sums into extra grids).
+    (unrolled, it reassociates the sums into extra grids). `chunk_size >= ONE_CHUNK` makes the count one chunk,
+    static, at any point count.
     """
     total, static_total = tf.shape(segment_ids)[0], segment_ids.shape[0]
     if static_total is not None:
         chunk = max(min(chunk_size, static_total), 1)
         num_chunks = max(-(-static_total // chunk), 1)
+    elif chunk_size >= ONE_CHUNK:  # one chunk of every point, however many there are (see ONE_CHUNK)
+        chunk, num_chunks = tf.maximum(total, 1), 1
     else:
         chunk = tf.maximum(tf.minimum(chunk_size, total), 1)
         num_chunks = tf.maximum((total + chunk - 1) // chunk, 1)

@@ -8,19 +8,30 @@ import time
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf.config import ExperimentConfig
-from ff3d_tf.data import pairs
+from ff3d_tf import metrics_av2
+from ff3d_tf.config import ExperimentConfig, replace_config
+from ff3d_tf.data import pair_records, pairs
 from ff3d_tf.metrics import AV2_MAX_DISTANCE_M, CROP_PREFIX, SceneFlowMetrics, published_epe_keys
 from ff3d_tf.model.forward import Predictor
 
+AV2_EVAL_EXTRAS = ("is_ground_t0", "category_t0")
+
 
 def count_pairs(files: list[str]) -> int:
-    """Upper bound of pairs (records - 1 per file), read without decoding, for progress and ETA."""
+    """Upper bound of pairs (records - 1 per segment file, one per pair records file), read without decoding, for
+    progress and ETA."""
     total = 0
     for f in files:
-        n = int(tf.data.TFRecordDataset(f).reduce(np.int64(0), lambda c, _: c + 1).numpy())
-        total += max(n - 1, 0)
+        n = int(tf.data.TFRecordDataset(f, compression_type=_compression(f)).reduce(
+            np.int64(0), lambda c, _: c + 1).numpy())
+        total += n if f.endswith(pair_records.FILE_SUFFIX) else max(n - 1, 0)
     return total
+
+
+def _compression(path: str) -> str:
+    if not path.endswith(pair_records.FILE_SUFFIX):
+        return ""
+    return "ZLIB" if pair_records.read_manifest(os.path.dirname(path)).compression == "zlib" else ""
 
 
 def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
@@ -55,6 +66,71 @@ def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_
         raise ValueError(f"no frame pairs in {files}")
     return tuple({**full.result(), **{CROP_PREFIX + k: v for k, v in published_epe_keys(crop.result()).items()}}
                  for full, crop in ((metric, metric_crop), (zero, zero_crop)))
+
+
+def challenge_flow_m(flow_mps, example: dict) -> np.ndarray:
+    """[N,3] metres over the pair, the challenge's forward flow of the t0 (first) sweep's points, from the model's
+    quantity in m/s of an Argoverse 2 challenge record (partner = next sweep: flow_mps = (p_t0 - p_next) / dt)."""
+    dt_s = (int(example[pair_records.PARTNER_TIMESTAMP_KEY]) - int(example[pair_records.TIMESTAMP_KEY])) * 1e-9
+    return -np.asarray(flow_mps, np.float64) * dt_s
+
+
+def av2_challenge_examples(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
+                           log_fn=print):
+    """(example, predicted m/s, prediction valid, eval mask) per pair of Argoverse 2 challenge records, in order.
+
+    Every point is kept (no grid crop: the challenge scores every eval-mask point; a point the model cannot see gets
+    flow 0). Raises ValueError unless `files` are Argoverse 2 records paired with the next sweep
+    (`tools/write_pair_records.py --source av2`).
+    """
+    if cfg.data.source != "pair_records":
+        raise ValueError("the Argoverse 2 protocol reads pair records: --set data.source=pair_records and "
+                         "--data_dir of `tools/write_pair_records.py --source av2`")
+    manifest = pair_records.manifest_of_files(list(files))
+    if manifest.source != "av2" or manifest.partner != "next":
+        raise ValueError(f"{os.path.dirname(files[0])}: records of {manifest.source} paired with the "
+                         f"{manifest.partner} sweep; the Argoverse 2 protocol needs Argoverse 2 records paired with "
+                         "the next sweep (tools/write_pair_records.py --source av2)")
+    cfg = replace_config(cfg, {"data.crop_to_grid": False, "data.labels": "human"})
+    total = count_pairs(files) if not max_pairs else min(count_pairs(files), max_pairs)
+    ds = pairs.pair_dataset(files, cfg, extras=AV2_EVAL_EXTRAS, metadata=True)
+    if max_pairs:
+        ds = ds.take(max_pairs)
+    t0, done = time.time(), 0
+    with pairs.input_errors_named(files):
+        for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base):
+            flow_pred, valid = predictor.predict(batch, ex)
+            ex = {k: v.numpy() for k, v in ex.items()}
+            valid = np.asarray(valid)
+            mask = metrics_av2.eval_mask(ex["points_xyz_t0"], ex["is_ground_t0"])
+            yield ex, np.where(valid[:, None], np.asarray(flow_pred), 0.0), valid, mask
+            done += 1
+            if done % 5 == 0 or done == total:
+                rate = done / max(time.time() - t0, 1e-9)
+                log_fn(f"eval {done}/{total} pairs {rate:.2f} pairs/s "
+                       f"ETA {max(total - done, 0) / max(rate, 1e-9):.0f}s")
+    if done == 0:
+        raise ValueError(f"no pairs in {files}")
+
+
+def evaluate_av2(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
+                 log_fn=print) -> dict:
+    """The Argoverse 2 2024 challenge's numbers (`metrics_av2`: three-way EPE, bucketed normalized EPE; metres per
+    frame) of the model and of zero flow over the eval-mask points of every pair, and the paper's tables (m/s) on
+    the same points. Returns {"model": ..., "zero_flow": ..., "paper_model": ..., "paper_zero_flow": ...,
+    "points_without_prediction": n (eval-mask points outside the model's grid, scored with flow 0)}."""
+    acc, acc_zero = metrics_av2.AV2FlowAccumulator(), metrics_av2.AV2FlowAccumulator()
+    paper, paper_zero = SceneFlowMetrics(), SceneFlowMetrics()
+    unseen = 0
+    for ex, flow_pred, valid, mask in av2_challenge_examples(cfg, files, predictor, max_pairs, log_fn):
+        true_m = challenge_flow_m(ex["flow_mps_t0"], ex)
+        acc.update(true_m, challenge_flow_m(flow_pred, ex), ex["category_t0"], mask)
+        acc_zero.update(true_m, np.zeros_like(true_m), ex["category_t0"], mask)
+        for m, flow in ((paper, flow_pred), (paper_zero, np.zeros_like(flow_pred))):
+            m.update_state(ex["flow_mps_t0"], flow.astype(np.float32), ex["class_id_t0"], point_valid=mask)
+        unseen += int(np.sum(mask & ~valid))
+    return {"model": acc.result(), "zero_flow": acc_zero.result(), "paper_model": paper.result(),
+            "paper_zero_flow": paper_zero.result(), "points_without_prediction": unseen}
 
 
 def write_results(out_dir: str, result: dict, zero: dict, cfg: ExperimentConfig) -> None:

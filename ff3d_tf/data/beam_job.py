@@ -1,0 +1,87 @@
+"""The one shape of the project's data jobs: an Apache Beam pipeline with one element per input (a WOD segment, an
+Argoverse 2 log), each writing its output file atomically and skipping outputs that exist, so that a rerun resumes.
+
+`run_per_input(inputs, process, ...)` runs `process(input) -> counts` for every input (DirectRunner unless the standard
+Beam options say otherwise; `--direct_num_workers=N --direct_running_mode=multi_processing` runs N at once), logs
+progress with rate and ETA as inputs finish, and returns the summed counts, also written as JSON into `out_dir`.
+`process` must be picklable (a module-level function or a `functools.partial` of one).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from typing import Callable
+
+_LOG = logging.getLogger(__name__)
+
+
+def merge_counts(all_counts) -> dict:
+    out: dict = {}
+    for counts in all_counts:
+        for k, v in counts.items():
+            out[k] = out.get(k, 0) + v
+    return out
+
+
+class Progress:
+    """Inputs done out of a total, with the rate and the time left, for a job's log."""
+
+    def __init__(self, total: int, unit: str = "inputs", clock=time.monotonic):
+        self.total, self.unit, self.clock = total, unit, clock
+        self.start, self.done = clock(), 0
+
+    def step(self, n: int = 1) -> str:
+        self.done += n
+        elapsed = max(self.clock() - self.start, 1e-9)
+        rate = self.done / elapsed
+        left = (self.total - self.done) / rate if rate > 0 else float("inf")
+        return (f"{self.done}/{self.total} {self.unit}, {rate * 60:.2f}/min, "
+                f"ETA {time.strftime('%H:%M:%S', time.gmtime(left)) if left != float('inf') else '?'}")
+
+
+def write_json(obj, path: str) -> str:
+    import tensorflow as tf
+    with tf.io.gfile.GFile(path + ".partial", "w") as f:
+        json.dump(obj, f, indent=1, sort_keys=True)
+    tf.io.gfile.rename(path + ".partial", path, overwrite=True)
+    return path
+
+
+def run_per_input(inputs: list[str], process: Callable[[str], dict], out_dir: str, job_name: str,
+                  beam_args: list[str] | None = None, result_name: str | None = None) -> dict:
+    """Runs `process` on every input in a Beam pipeline; returns the summed counts (also `<out_dir>/<result_name>`,
+    default `<job_name>_counts.json`)."""
+    import apache_beam as beam
+    import tensorflow as tf
+    from apache_beam.options.pipeline_options import PipelineOptions
+
+    result_path = os.path.join(out_dir, result_name or f"{job_name}_counts.json")
+    tf.io.gfile.makedirs(out_dir)
+    total = len(inputs)
+
+    class Process(beam.DoFn):
+        def setup(self):
+            self.progress = Progress(total)
+
+        def process(self, path):
+            counts = process(path)
+            for k, v in counts.items():
+                beam.metrics.Metrics.counter(job_name, k).inc(int(v))
+            # One worker's view of the job: with several workers each reports the inputs it did.
+            _LOG.info("%s: done %s (%s): %s", job_name, path, self.progress.step(), counts)
+            yield counts
+
+    beam_args = list(beam_args or [])
+    if not any(a.startswith("--runner") for a in beam_args):
+        beam_args.append("--runner=DirectRunner")  # not Beam's default Prism runner, which downloads a binary
+    with beam.Pipeline(options=PipelineOptions(beam_args)) as p:
+        (p | "Inputs" >> beam.Create(list(inputs))
+           | "Reshuffle" >> beam.Reshuffle()
+           | "Process" >> beam.ParDo(Process())
+           | "Collect" >> beam.combiners.ToList()
+           | "Merge" >> beam.Map(merge_counts)
+           | "Write" >> beam.Map(write_json, result_path))
+    with tf.io.gfile.GFile(result_path) as f:
+        return json.load(f)

@@ -1,0 +1,67 @@
+"""Pair records of WOD segments (`ff3d_tf.data.pair_records`): the decode-once path's writer.
+
+One output file per segment (`<segment>.pairs.tfrecord`), written atomically, skipped when it exists (resumable); the
+pairs are those of `ff3d_tf.data.pairs.pair_dataset` under `pairs.raw_pair_config` (every point, no study), so that
+reading them with any config gives the examples the decoding path gives with that config.
+"""
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import time
+
+import tensorflow as tf
+
+from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.data import beam_job, pair_records, pairs
+
+_LOG = logging.getLogger(__name__)
+
+
+def wod_manifest(cfg: ExperimentConfig, precision: str = "exact", compression: str = "none",
+                 written_by: str = "", human_labels: bool = True) -> pair_records.Manifest:
+    """`human_labels=False`: segments without scene-flow labels (raw LiDAR, e.g. for pseudo-labelling)."""
+    d = cfg.data
+    return pair_records.Manifest(source="wod", laser_names=tuple(d.laser_names), returns=tuple(d.returns),
+                                 max_frame_gap_s=d.max_frame_gap_s, precision=precision, compression=compression,
+                                 human_labels=human_labels, written_by=written_by).validate("<manifest>")
+
+
+def write_segment(in_path: str, out_dir: str, cfg: ExperimentConfig, manifest: pair_records.Manifest) -> dict:
+    """Writes the pair records of one segment; returns counts (pairs, points, bytes, seconds; already_done)."""
+    out_path = os.path.join(out_dir, pair_records.records_file_name(in_path))
+    if tf.io.gfile.exists(out_path):
+        _LOG.info("exists, skipped: %s", out_path)
+        return {"already_done": 1}
+    t0 = time.time()
+    counts = {"pairs": 0, "points_t0": 0, "points_tm1": 0}
+    raw_cfg = pairs.raw_pair_config(cfg)
+
+    def records():
+        unlabelled = not manifest.human_labels
+        with pairs.input_errors_named([in_path], pairs.decode_options(raw_cfg, unlabelled)):
+            for ex in pairs.pair_dataset([in_path], raw_cfg, metadata=True, inference_only=unlabelled):
+                ex = {k: v.numpy() for k, v in ex.items()}
+                counts["pairs"] += 1
+                counts["points_t0"] += int(ex["num_points_t0"])
+                counts["points_tm1"] += int(ex["num_points_tm1"])
+                yield pair_records.serialize_pair(ex, manifest.precision)
+
+    pair_records.write_records_atomically(out_path, records(), manifest.compression)
+    counts["bytes"] = tf.io.gfile.stat(out_path).length
+    counts["seconds"] = time.time() - t0
+    _LOG.info("%s: %d pairs, %.1f MB, %.2f pairs/s", out_path, counts["pairs"], counts["bytes"] / 1e6,
+              counts["pairs"] / max(counts["seconds"], 1e-9))
+    return counts
+
+
+def run_wod_job(files: list[str], out_dir: str, cfg: ExperimentConfig, precision: str = "exact",
+                compression: str = "none", beam_args: list[str] | None = None, written_by: str = "",
+                human_labels: bool = True) -> dict:
+    """Pair records of every segment in `files` into `out_dir` (a Beam job, `ff3d_tf.data.beam_job`)."""
+    manifest = wod_manifest(cfg, precision, compression, written_by, human_labels)
+    pair_records.write_manifest(out_dir, manifest)  # before any work: a directory of other records fails here
+    return beam_job.run_per_input(list(files), functools.partial(write_segment, out_dir=out_dir, cfg=cfg,
+                                                                 manifest=manifest),
+                                  out_dir, "write_pair_records", beam_args)

@@ -1,0 +1,352 @@
+"""ONNX export of the serving forward, for ONNX Runtime and TensorRT, and an ONNX Runtime predictor.
+
+The graph is the SavedModel's serving forward (`ff3d_tf.inference.saved_model`) without its pose assertions (ONNX
+has no assert; `OnnxFlowPredictor` checks the poses on the host, with the same rules):
+
+  inputs   points_tm1 [N1,5] float32, points_t0 [N0,5] float32 (x, y, z in metres in each frame's own vehicle frame,
+           intensity, elongation; N0, N1 dynamic, 0 allowed), and the ego motion, as `pose_inputs` says:
+             "world_float64"    pose_tm1, pose_t0 [4,4] float64 (vehicle -> world), composed inside the graph as
+                                rigid_inverse(pose_t0) @ pose_tm1 (`geometry.rigid_inverse`: ONNX has no matrix
+                                inverse) and applied in float64, as the SavedModel does;
+             "relative_float32" t0_from_tm1 [4,4] float32 (vehicle frame at t-1 -> at t0), composed by the caller in
+                                float64 (`geometry.t0_from_tm1_np`) and applied in float32: no float64 tensor in the
+                                graph (TensorRT has none).
+  outputs  flow_mps [N0,3] float32 (m/s, vehicle frame at t0; 0 where invalid), point_valid [N0] bool.
+
+Variants (`VARIANTS`):
+  "loop"          the point encoder in chunks of `ops.POINT_CHUNK` points, an ONNX `Loop` per cloud: memory bounded at
+                  any cloud size; for ONNX Runtime.
+  "single_chunk"  the whole cloud in one chunk (`ops.ONE_CHUNK`): no `Loop`, no control flow; for TensorRT 10, which
+                  runs `ScatterElements` with reduction add as a plugin. Memory grows with the cloud (the scatter's
+                  indices are [N, C] int64).
+
+What the conversion changes, each for a measured reason (tf2onnx 1.17, onnxruntime 1.31, opset 17):
+  - tf.math.unsorted_segment_sum becomes ScatterElements(reduction="add") into a zero grid; ids outside
+    [0, num_segments) (TensorFlow drops them; ONNX reads a negative index from the end) add a zero. tf2onnx's
+    own lowering fails in onnxruntime on the model's empty first chunk (a negative shape) and needs memory
+    proportional to the fullest pillar; ScatterND with reduction add races on onnxruntime's CPU with 2 threads
+    (sums differ from call to call, onnxruntime issues 18048 and 23396); ScatterElements is deterministic.
+  - tf.where of floats becomes ONNX Where: tf2onnx writes it as cond * x + (1 - cond) * y, which turns the masked
+    NaN of a non-finite point into a NaN flow (0 * NaN = NaN).
+  - opset >= 16 (`MIN_OPSET`): below, ScatterElements has no reduction and tf2onnx silently drops it.
+  - the model runs in compile mode "none" (an export twin with the same weights): "hybrid"/"xla" leave XLA calls
+    in the graph that do not convert.
+  - each cloud is padded inside the graph to at least one masked point: an empty cloud fails at a reduction.
+
+Every op of the written graph, its subgraphs included, is checked against the ONNX standard schemas at the opset
+(`check_graph`): an op tf2onnx could not map (it logs and continues) fails the export, naming the op.
+tf2onnx and onnx are imported inside the functions (onnxruntime in `OnnxFlowPredictor`): importing this module
+imports neither. The handlers use tf2onnx's graph API (`Graph.make_node`, `make_const`, `remove_node`, `get_shape`,
+`get_dtype`, `Node.input/output/type`), which tf2onnx does not promise to keep: checked on `TF2ONNX_CHECKED_ON`.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+
+import keras
+import numpy as np
+import tensorflow as tf
+
+from ff3d_tf import geometry
+from ff3d_tf.model import ops
+from ff3d_tf.model.fastflow3d import FastFlow3D
+
+VARIANTS = ("loop", "single_chunk")
+POSE_INPUTS = ("world_float64", "relative_float32")
+DEFAULT_POSE_INPUTS = {"loop": "world_float64", "single_chunk": "relative_float32"}
+DEFAULT_OPSET = 17
+MIN_OPSET = 16  # ScatterElements' reduction attribute
+TF2ONNX_CHECKED_ON = "1.17.0"
+POINT_WIDTH = 5  # x, y, z, intensity, elongation
+OUTPUT_NAMES = ("flow_mps", "point_valid")
+CONTROL_FLOW_OPS = ("Loop", "If", "Scan")
+_METADATA_KEYS = ("ff3d_variant", "ff3d_pose_inputs")
+
+
+def input_names(pose_inputs: str) -> tuple[str, ...]:
+    """The graph's input names, in order, for a `POSE_INPUTS` choice."""
+    _check_choice("pose_inputs", pose_inputs, POSE_INPUTS)
+    return ("points_tm1", "points_t0") + (("pose_tm1", "pose_t0") if pose_inputs == "world_float64" else
+                                          ("t0_from_tm1",))
+
+
+def _check_choice(name, value, choices):
+    if value not in choices:
+        raise ValueError(f"{name}={value!r}: one of {', '.join(choices)}")
+
+
+# -- the TensorFlow function that is converted ----------------------------------------------------------------------
+
+def export_twin(model: FastFlow3D, variant: str) -> FastFlow3D:
+    """A float32 copy of `model` in compile mode "none" with the variant's point chunk and the same weights."""
+    _check_choice("variant", variant, VARIANTS)
+    chunk = ops.ONE_CHUNK if variant == "single_chunk" else ops.POINT_CHUNK
+    previous = keras.config.dtype_policy()
+    keras.config.set_dtype_policy("float32")  # the layers take the global policy: float32 also for a mixed model
+    try:
+        twin = FastFlow3D.from_config({**model.get_config(), "compile_mode": "none", "point_chunk_size": chunk,
+                                       "dtype": "float32"})
+    finally:
+        keras.config.set_dtype_policy(previous)
+    twin.build()
+    weights = model.get_weights()
+    if [w.shape for w in weights] != [tuple(v.shape) for v in twin.weights]:
+        raise ValueError("export twin: the model's weights do not match its own config (a model built by hand?)")
+    twin.set_weights(weights)
+    return twin
+
+
+def _at_least_one_point(points, n):
+    """[N,5] -> ([1,max(N,1),5], mask [1,max(N,1)]): an empty cloud becomes one masked zero point (a concat and a
+    slice, which every runtime has; no dynamic Pad)."""
+    m = tf.maximum(n, 1)
+    padded = tf.concat([points, tf.zeros([1, POINT_WIDTH], points.dtype)], 0)[:m]
+    return padded[None], (tf.range(m) < n)[None]
+
+
+def serving_function(model: FastFlow3D, pose_inputs: str):
+    """(tf.function, input signature) of the graph that is converted; `model` should be an `export_twin`."""
+    names = input_names(pose_inputs)
+
+    def flow(points_tm1, points_t0, xyz_tm1_in_t0):
+        n0, n1 = tf.shape(points_t0)[0], tf.shape(points_tm1)[0]
+        p0, m0 = _at_least_one_point(points_t0, n0)
+        p1, m1 = _at_least_one_point(tf.concat([xyz_tm1_in_t0, points_tm1[:, 3:]], -1), n1)
+        out = model({"points_xyz_t0": p0[..., :3], "point_features_t0": p0[..., 3:], "point_mask_t0": m0,
+                     "points_xyz_tm1_in_t0": p1[..., :3], "point_features_tm1": p1[..., 3:],
+                     "point_mask_tm1": m1}, training=False)
+        return {"flow_mps": out["flow_mps"][0, :n0], "point_valid": out["point_valid"][0, :n0]}
+
+    points = [tf.TensorSpec([None, POINT_WIDTH], tf.float32, name=n) for n in names[:2]]
+    if pose_inputs == "world_float64":
+        def fn(points_tm1, points_t0, pose_tm1, pose_t0):
+            t0_from_tm1 = geometry.rigid_inverse(pose_t0) @ pose_tm1
+            return flow(points_tm1, points_t0, geometry.transform_points(points_tm1[:, :3], t0_from_tm1))
+        signature = points + [tf.TensorSpec([4, 4], tf.float64, name=n) for n in names[2:]]
+    else:
+        def fn(points_tm1, points_t0, t0_from_tm1):
+            xyz = tf.matmul(points_tm1[:, :3], t0_from_tm1[:3, :3], transpose_b=True) + t0_from_tm1[:3, 3]
+            return flow(points_tm1, points_t0, xyz)
+        signature = points + [tf.TensorSpec([4, 4], tf.float32, name=names[2])]
+    return tf.function(fn, autograph=False), signature  # no Python control flow on tensors to convert
+
+
+# -- tf2onnx handlers (tf2onnx's graph API: see the module docstring) -----------------------------------------------
+
+def _segment_sum_to_scatter_elements(ctx, node, name, args):
+    """UnsortedSegmentSum(data [P, C...], ids [P], num_segments S) -> ScatterElements(add) of data into zeros
+    [S, C...]; the values of ids outside [0, S) (TensorFlow drops them) are added to row 0 as zeros."""
+    del name, args
+    from onnx import TensorProto, numpy_helper
+    from tf2onnx import utils
+    data, ids, num_segments = node.input
+    data_static = ctx.get_shape(data)
+    utils.make_sure(data_static is not None and len(data_static) >= 1 and len(ctx.get_shape(ids) or []) == 1,
+                    "UnsortedSegmentSum %s: only 1-D segment ids of data with a known rank are handled", node.name)
+    rank = len(data_static)
+    dtype, out_shape = ctx.get_dtype(node.output[0]), ctx.get_shape(node.output[0])
+
+    def op(op_type, inputs, **attr):
+        return ctx.make_node(op_type, inputs, attr=attr, op_name_scope=node.name).output[0]
+
+    def const(value, np_type=np.int64):
+        return ctx.make_const(utils.make_name(f"{node.name}_const"), np.asarray(value, np_type)).output[0]
+
+    segments = op("Reshape", [op("Cast", [num_segments], to=TensorProto.INT64), const([1])])  # [1]: S
+    data_shape = op("Shape", [data])
+    grid_shape = op("Concat", [segments, op("Slice", [data_shape, const([1]), const([rank]), const([0])])], axis=0)
+    np_dtype = utils.map_onnx_to_numpy_type(dtype)
+    ids64 = op("Cast", [ids], to=TensorProto.INT64)
+    inside = op("And", [op("GreaterOrEqual", [ids64, const(0)]), op("Less", [ids64, segments])])  # [P]
+    rows = op("Where", [inside, ids64, const(0)])
+    if rank > 1:
+        trailing = const(list(range(1, rank)))
+        rows, inside = op("Unsqueeze", [rows, trailing]), op("Unsqueeze", [inside, trailing])
+    updates = op("Where", [inside, data, const([0], np_dtype)])
+    indices = op("Expand", [rows, data_shape])  # [P, C...]: ScatterElements takes one index per value
+    grid = op("ConstantOfShape", [grid_shape], value=numpy_helper.from_array(np.zeros([1], np_dtype), "value"))
+    ctx.remove_node(node.name)
+    ctx.make_node("ScatterElements", [grid, indices, updates], attr={"axis": 0, "reduction": "add"},
+                  outputs=node.output, name=node.name, shapes=[out_shape], dtypes=[dtype])
+
+
+def _select_to_where(ctx, node, name, args):
+    """Select/SelectV2 -> ONNX Where, whatever the dtype (NaN-safe). SelectV2 broadcasts as Where does; Select (v1)
+    with a 1-D condition picks rows, so its condition is reshaped to [P, 1, ...]."""
+    del name, args
+    from tf2onnx import utils
+    cond_shape, x_shape = ctx.get_shape(node.input[0]), ctx.get_shape(node.input[1]) or ctx.get_shape(node.input[2])
+    if node.type == "Select" and cond_shape is not None and len(cond_shape) == 1 and (x_shape is None or
+                                                                                      len(x_shape) != 1):
+        utils.make_sure(x_shape is not None, "Select %s: a 1-D condition on an input of unknown rank", node.name)
+        shape = ctx.make_const(utils.make_name(f"{node.name}_shape"),
+                               np.array([-1] + [1] * (len(x_shape) - 1), np.int64)).output[0]
+        reshaped = ctx.make_node("Reshape", [node.input[0], shape], op_name_scope=node.name).output[0]
+        ctx.replace_input(node, node.input[0], reshaped, 0)
+    node.type = "Where"
+
+
+CUSTOM_OP_HANDLERS = {"UnsortedSegmentSum": (_segment_sum_to_scatter_elements, []),
+                      "SelectV2": (_select_to_where, []), "Select": (_select_to_where, [])}
+
+
+# -- export and checks ----------------------------------------------------------------------------------------------
+
+class _Errors(logging.Handler):
+    """Collects tf2onnx's ERROR records: `from_function` converts with continue_on_error and only logs failures."""
+
+    def __init__(self):
+        super().__init__(logging.ERROR)
+        self.messages = []
+
+    def emit(self, record):
+        self.messages.append(record.getMessage())
+
+
+def _check_opset(opset: int) -> None:
+    if opset < MIN_OPSET:
+        raise ValueError(f"opset={opset}: needs >= {MIN_OPSET} (below, ScatterElements has no reduction and tf2onnx "
+                         f"would drop the pillar sums' reduction)")
+
+
+def convert_function(fn, input_signature, opset: int = DEFAULT_OPSET):
+    """A tf.function as an ONNX ModelProto with this module's handlers (`CUSTOM_OP_HANDLERS`); raises RuntimeError
+    naming what tf2onnx failed to convert (it logs failures and carries on)."""
+    import tf2onnx
+    _check_opset(opset)
+    errors, tf2onnx_logger = _Errors(), logging.getLogger("tf2onnx")
+    tf2onnx_logger.addHandler(errors)
+    try:
+        proto, _ = tf2onnx.convert.from_function(fn, input_signature=input_signature, opset=opset,
+                                                 custom_op_handlers=dict(CUSTOM_OP_HANDLERS))
+    finally:
+        tf2onnx_logger.removeHandler(errors)
+    if errors.messages:
+        raise RuntimeError("tf2onnx failed to convert the graph: " + " | ".join(errors.messages[:5]))
+    return proto
+
+
+def convert(model: FastFlow3D, variant: str = "loop", pose_inputs: str | None = None, opset: int = DEFAULT_OPSET):
+    """The ONNX ModelProto of `model`'s serving forward (see the module docstring), checked (`check_graph`)."""
+    import onnx
+    _check_choice("variant", variant, VARIANTS)
+    pose_inputs = DEFAULT_POSE_INPUTS[variant] if pose_inputs is None else pose_inputs
+    _check_choice("pose_inputs", pose_inputs, POSE_INPUTS)
+    _check_opset(opset)  # before the twin is built and traced
+    proto = convert_function(*serving_function(export_twin(model, variant), pose_inputs), opset)
+    onnx.helper.set_model_props(proto, dict(zip(_METADATA_KEYS, (variant, pose_inputs))))
+    check_graph(proto, variant, pose_inputs)
+    return proto
+
+
+def export_onnx(model: FastFlow3D, path: str, variant: str = "loop", pose_inputs: str | None = None,
+                opset: int = DEFAULT_OPSET) -> dict:
+    """Writes `model`'s serving forward as an ONNX file at `path`; returns {variant, pose_inputs, opset, inputs,
+    outputs, ops} (ops: `graph_ops` as "op": count)."""
+    import onnx
+    proto = convert(model, variant, pose_inputs, opset)
+    onnx.save(proto, path)
+    meta = {p.key: p.value for p in proto.metadata_props}
+    return {"path": path, "variant": variant, "pose_inputs": meta["ff3d_pose_inputs"], "opset": opset,
+            "inputs": [i.name for i in proto.graph.input], "outputs": [o.name for o in proto.graph.output],
+            "ops": {op: n for (_, op), n in sorted(graph_ops(proto).items())}}
+
+
+def _graphs(graph):
+    """`graph` and every subgraph of its nodes (Loop bodies, If branches), depth first."""
+    yield graph
+    for node in graph.node:
+        for attr in node.attribute:
+            for sub in ([attr.g] if attr.HasField("g") else []) + list(attr.graphs):
+                yield from _graphs(sub)
+
+
+def graph_ops(proto) -> collections.Counter:
+    """{(domain, op type): count} over the graph and its subgraphs."""
+    return collections.Counter((n.domain, n.op_type) for g in _graphs(proto.graph) for n in g.node)
+
+
+def check_graph(proto, variant: str, pose_inputs: str) -> None:
+    """Raises ValueError unless every op is a standard ONNX op at the model's opset, no ScatterND reduces (it races
+    on onnxruntime's CPU), the graph has the expected inputs and outputs, and, for "single_chunk", there is no
+    control flow; with "relative_float32" poses, no float64 tensor enters or is made."""
+    import onnx
+    opset = {o.domain: o.version for o in proto.opset_import}.get("", 0)
+    problems = []
+    for g in _graphs(proto.graph):
+        for n in g.node:
+            if n.domain not in ("", "ai.onnx"):
+                problems.append(f"{n.op_type} of domain {n.domain!r} (node {n.name})")
+            elif not onnx.defs.has(n.op_type):
+                problems.append(f"{n.op_type} is no ONNX op (node {n.name}: tf2onnx left it unconverted)")
+            elif onnx.defs.get_schema(n.op_type, opset).since_version > opset:
+                problems.append(f"{n.op_type} needs a newer opset than {opset}")
+            attrs = {a.name: onnx.helper.get_attribute_value(a) for a in n.attribute}
+            if n.op_type == "ScatterND" and attrs.get("reduction", b"none") not in (b"none", "none"):
+                problems.append(f"ScatterND with reduction {attrs['reduction']!r} (node {n.name}: races on CPU)")
+            if n.op_type in CONTROL_FLOW_OPS and variant == "single_chunk":
+                problems.append(f"{n.op_type} in the single_chunk graph (node {n.name})")
+            if pose_inputs == "relative_float32" and n.op_type == "Cast" and \
+                    attrs.get("to") == onnx.TensorProto.DOUBLE:
+                problems.append(f"a float64 Cast (node {n.name}) with relative_float32 poses")
+        if pose_inputs == "relative_float32":
+            problems += [f"float64 initializer {t.name}" for t in g.initializer
+                         if t.data_type == onnx.TensorProto.DOUBLE]
+    names = [i.name for i in proto.graph.input]
+    if names != list(input_names(pose_inputs)):
+        problems.append(f"inputs {names}, expected {list(input_names(pose_inputs))}")
+    if [o.name for o in proto.graph.output] != list(OUTPUT_NAMES):
+        problems.append(f"outputs {[o.name for o in proto.graph.output]}, expected {list(OUTPUT_NAMES)}")
+    if problems:
+        raise ValueError(f"ONNX graph ({variant}) is not portable: " + "; ".join(problems))
+
+
+# -- running it with onnxruntime ------------------------------------------------------------------------------------
+
+class OnnxFlowPredictor:
+    """An exported ONNX file under onnxruntime (CPU): `predictor(points_tm1, points_t0, pose_tm1, pose_t0)` ->
+    {"flow_mps" [N0,3], "point_valid" [N0]} as NumPy, whatever the file's `pose_inputs`.
+
+    Checks first, with a `ValueError` naming the argument: clouds float32 [N,5], poses float64 [4,4] and rigid
+    (`geometry.pose_problem_np`, the SavedModel's rules). `intra_op_threads`: onnxruntime's intra-op threads (the
+    outputs do not depend on it: the pillar sums are ScatterElements, deterministic).
+    """
+
+    def __init__(self, path: str, intra_op_threads: int = 2):
+        import onnxruntime as ort
+        options = ort.SessionOptions()
+        options.intra_op_num_threads = int(intra_op_threads)
+        options.inter_op_num_threads = 1
+        self.path = path
+        self.session = ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
+        meta = self.session.get_modelmeta().custom_metadata_map
+        missing = [k for k in _METADATA_KEYS if k not in meta]
+        if missing:
+            raise ValueError(f"{path}: not written by ff3d_tf's ONNX export (metadata {missing} missing)")
+        self.variant, self.pose_inputs = meta["ff3d_variant"], meta["ff3d_pose_inputs"]
+        _check_choice(f"{path}: pose_inputs", self.pose_inputs, POSE_INPUTS)
+
+    def feeds(self, points_tm1, points_t0, pose_tm1, pose_t0) -> dict:
+        """The session's inputs for one pair, after the checks."""
+        values = {"points_tm1": points_tm1, "points_t0": points_t0, "pose_tm1": pose_tm1, "pose_t0": pose_t0}
+        for name, value in values.items():
+            dtype, shape = (np.float32, (None, POINT_WIDTH)) if name.startswith("points") else (np.float64, (4, 4))
+            a = np.asarray(value)
+            if a.dtype != dtype or a.ndim != 2 or any(w is not None and w != g for w, g in zip(shape, a.shape)):
+                want = ", ".join("N" if d is None else str(d) for d in shape)
+                raise ValueError(f"{self.path}: input {name} must be {np.dtype(dtype).name} [{want}], got "
+                                 f"{a.dtype.name} {list(a.shape)}")
+            values[name] = a
+        for name in ("pose_tm1", "pose_t0"):
+            problem = geometry.pose_problem_np(values[name], name)
+            if problem:
+                raise ValueError(f"{self.path}: {problem}")
+        if self.pose_inputs == "world_float64":
+            return values
+        t0_from_tm1 = geometry.t0_from_tm1_np(values["pose_t0"], values["pose_tm1"]).astype(np.float32)
+        return {"points_tm1": values["points_tm1"], "points_t0": values["points_t0"], "t0_from_tm1": t0_from_tm1}
+
+    def __call__(self, points_tm1, points_t0, pose_tm1, pose_t0) -> dict:
+        flow, valid = self.session.run(list(OUTPUT_NAMES), self.feeds(points_tm1, points_t0, pose_tm1, pose_t0))
+        return {"flow_mps": flow, "point_valid": valid}
