@@ -30,6 +30,14 @@ JAX (checked on jax/jaxlib 0.10.2 and, for loading what this writes, 0.11.2):
     "hlo_serialized")`) as a `jax.export.Exported`. jax.extend gives `hlo_to_stablehlo`, `Primitive` and the MLIR
     bindings; the lowering registration (`jax.interpreters.mlir.register_lowering`, `merge_mlir_modules`) and
     `jax.core.ShapedArray` are JAX internals: no public API calls a foreign StableHLO module.
+
+tf2onnx (checked on tf2onnx 1.17.0, onnx 1.19.1):
+  - `tf2onnx_custom_op_handlers`: the ONNX export's own lowering of two TensorFlow ops (UnsortedSegmentSum as
+    ScatterElements with reduction add; Select/SelectV2 as Where). The handlers receive tf2onnx's internal `Graph` and
+    `Node` (`make_node`, `make_const`, `remove_node`, `get_shape`, `get_dtype`, `replace_input`, `Node.input/output/
+    type`) and use `tf2onnx.utils` (`make_name`, `make_sure`, `map_onnx_to_numpy_type`), through the dict form of
+    `from_function(custom_op_handlers=...)` that tf2onnx's code calls temporary. Why: see
+    `ff3d_tf.inference.onnx_export` (tf2onnx's own lowerings fail in onnxruntime, race, or leak NaN).
 """
 from __future__ import annotations
 
@@ -45,6 +53,7 @@ CHECKED_ON = {
     "checkpoint_reader": {"tensorflow": "2.21.0"},
     "profiler_xspace": {"tensorflow": "2.21.0"},
     "hlo_to_jax_exported": {"jax": "0.10.2", "jaxlib": "0.10.2"},
+    "tf2onnx_custom_op_handlers": {"tf2onnx": "1.17.0", "onnx": "1.19.1"},
 }
 
 
@@ -157,3 +166,65 @@ def hlo_to_jax_exported(hlo: bytes, platforms: Sequence[str]):
         return _PROGRAM_P.bind(*args, stablehlo=stablehlo, out_avals=tuple(out_avals))
     specs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in in_avals]
     return export.export(jax.jit(program), platforms=tuple(platforms))(*specs)
+
+
+# --- tf2onnx -----------------------------------------------------------------------------------------------------
+
+def _segment_sum_to_scatter_elements(ctx, node, name, args):
+    """UnsortedSegmentSum(data [P, C...], ids [P], num_segments S) -> ScatterElements(add) of data into zeros
+    [S, C...]; the values of ids outside [0, S) (TensorFlow drops them) are added to row 0 as zeros."""
+    del name, args
+    from onnx import TensorProto, numpy_helper
+    from tf2onnx import utils
+    data, ids, num_segments = node.input
+    data_static = ctx.get_shape(data)
+    utils.make_sure(data_static is not None and len(data_static) >= 1 and len(ctx.get_shape(ids) or []) == 1,
+                    "UnsortedSegmentSum %s: only 1-D segment ids of data with a known rank are handled", node.name)
+    rank = len(data_static)
+    dtype, out_shape = ctx.get_dtype(node.output[0]), ctx.get_shape(node.output[0])
+
+    def op(op_type, inputs, **attr):
+        return ctx.make_node(op_type, inputs, attr=attr, op_name_scope=node.name).output[0]
+
+    def const(value, np_type=np.int64):
+        return ctx.make_const(utils.make_name(f"{node.name}_const"), np.asarray(value, np_type)).output[0]
+
+    segments = op("Reshape", [op("Cast", [num_segments], to=TensorProto.INT64), const([1])])  # [1]: S
+    data_shape = op("Shape", [data])
+    grid_shape = op("Concat", [segments, op("Slice", [data_shape, const([1]), const([rank]), const([0])])], axis=0)
+    np_dtype = utils.map_onnx_to_numpy_type(dtype)
+    ids64 = op("Cast", [ids], to=TensorProto.INT64)
+    inside = op("And", [op("GreaterOrEqual", [ids64, const(0)]), op("Less", [ids64, segments])])  # [P]
+    rows = op("Where", [inside, ids64, const(0)])
+    if rank > 1:
+        trailing = const(list(range(1, rank)))
+        rows, inside = op("Unsqueeze", [rows, trailing]), op("Unsqueeze", [inside, trailing])
+    updates = op("Where", [inside, data, const([0], np_dtype)])
+    indices = op("Expand", [rows, data_shape])  # [P, C...]: ScatterElements takes one index per value
+    grid = op("ConstantOfShape", [grid_shape], value=numpy_helper.from_array(np.zeros([1], np_dtype), "value"))
+    ctx.remove_node(node.name)
+    ctx.make_node("ScatterElements", [grid, indices, updates], attr={"axis": 0, "reduction": "add"},
+                  outputs=node.output, name=node.name, shapes=[out_shape], dtypes=[dtype])
+
+
+def _select_to_where(ctx, node, name, args):
+    """Select/SelectV2 -> ONNX Where, whatever the dtype (NaN-safe). SelectV2 broadcasts as Where does; Select (v1)
+    with a 1-D condition picks rows, so its condition is reshaped to [P, 1, ...]."""
+    del name, args
+    from tf2onnx import utils
+    cond_shape, x_shape = ctx.get_shape(node.input[0]), ctx.get_shape(node.input[1]) or ctx.get_shape(node.input[2])
+    if node.type == "Select" and cond_shape is not None and len(cond_shape) == 1 and (x_shape is None or
+                                                                                      len(x_shape) != 1):
+        utils.make_sure(x_shape is not None, "Select %s: a 1-D condition on an input of unknown rank", node.name)
+        shape = ctx.make_const(utils.make_name(f"{node.name}_shape"),
+                               np.array([-1] + [1] * (len(x_shape) - 1), np.int64)).output[0]
+        reshaped = ctx.make_node("Reshape", [node.input[0], shape], op_name_scope=node.name).output[0]
+        ctx.replace_input(node, node.input[0], reshaped, 0)
+    node.type = "Where"
+
+
+def tf2onnx_custom_op_handlers() -> dict:
+    """`custom_op_handlers` for `tf2onnx.convert.from_function`: UnsortedSegmentSum -> ScatterElements(add),
+    Select/SelectV2 -> Where."""
+    return {"UnsortedSegmentSum": (_segment_sum_to_scatter_elements, []),
+            "SelectV2": (_select_to_where, []), "Select": (_select_to_where, [])}

@@ -145,3 +145,21 @@ def test_hlo_to_jax_exported():
     got = export.deserialize(exported.serialize()).call(x, i)
     for g, w in zip(got, want):
         np.testing.assert_allclose(np.asarray(g), w.numpy(), rtol=1e-6)
+
+
+def test_tf2onnx_custom_op_handlers_lower_segment_sums_and_selects():
+    # The full checks against NumPy and TensorFlow are in tests/inference/test_onnx_export.py; here: that tf2onnx
+    # still calls the handlers and that they write the ops they promise.
+    import tf2onnx
+
+    @tf.function
+    def fn(values, ids):
+        summed = tf.math.unsorted_segment_sum(values, ids, 3)
+        return tf.where(tf.math.is_finite(summed), summed, tf.zeros_like(summed))
+
+    proto, _ = tf2onnx.convert.from_function(
+        fn, input_signature=[tf.TensorSpec([None, 2], tf.float32), tf.TensorSpec([None], tf.int32)], opset=17,
+        custom_op_handlers=internals.tf2onnx_custom_op_handlers())
+    nodes = {n.op_type: n for n in proto.graph.node}
+    assert "ScatterElements" in nodes and "Where" in nodes and "UnsortedSegmentSum" not in nodes
+    assert {a.name: a.s for a in nodes["ScatterElements"].attribute}.get("reduction") == b"add"

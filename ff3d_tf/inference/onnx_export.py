@@ -36,8 +36,8 @@ What the conversion changes, each for a measured reason (tf2onnx 1.17, onnxrunti
 Every op of the written graph, its subgraphs included, is checked against the ONNX standard schemas at the opset
 (`check_graph`): an op tf2onnx could not map (it logs and continues) fails the export, naming the op.
 tf2onnx and onnx are imported inside the functions (onnxruntime in `OnnxFlowPredictor`): importing this module
-imports neither. The handlers use tf2onnx's graph API (`Graph.make_node`, `make_const`, `remove_node`, `get_shape`,
-`get_dtype`, `Node.input/output/type`), which tf2onnx does not promise to keep: checked on `TF2ONNX_CHECKED_ON`.
+imports neither. The two op handlers use tf2onnx's internal graph API, so they live in `ff3d_tf.internals`
+(`tf2onnx_custom_op_handlers`, with the versions they were checked on).
 """
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ import keras
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf import geometry
+from ff3d_tf import geometry, internals
 from ff3d_tf.model import ops
 from ff3d_tf.model.fastflow3d import FastFlow3D
 
@@ -57,7 +57,6 @@ POSE_INPUTS = ("world_float64", "relative_float32")
 DEFAULT_POSE_INPUTS = {"loop": "world_float64", "single_chunk": "relative_float32"}
 DEFAULT_OPSET = 17
 MIN_OPSET = 16  # ScatterElements' reduction attribute
-TF2ONNX_CHECKED_ON = "1.17.0"
 POINT_WIDTH = 5  # x, y, z, intensity, elongation
 OUTPUT_NAMES = ("flow_mps", "point_valid")
 CONTROL_FLOW_OPS = ("Loop", "If", "Scan")
@@ -132,65 +131,6 @@ def serving_function(model: FastFlow3D, pose_inputs: str):
     return tf.function(fn, autograph=False), signature  # no Python control flow on tensors to convert
 
 
-# -- tf2onnx handlers (tf2onnx's graph API: see the module docstring) -----------------------------------------------
-
-def _segment_sum_to_scatter_elements(ctx, node, name, args):
-    """UnsortedSegmentSum(data [P, C...], ids [P], num_segments S) -> ScatterElements(add) of data into zeros
-    [S, C...]; the values of ids outside [0, S) (TensorFlow drops them) are added to row 0 as zeros."""
-    del name, args
-    from onnx import TensorProto, numpy_helper
-    from tf2onnx import utils
-    data, ids, num_segments = node.input
-    data_static = ctx.get_shape(data)
-    utils.make_sure(data_static is not None and len(data_static) >= 1 and len(ctx.get_shape(ids) or []) == 1,
-                    "UnsortedSegmentSum %s: only 1-D segment ids of data with a known rank are handled", node.name)
-    rank = len(data_static)
-    dtype, out_shape = ctx.get_dtype(node.output[0]), ctx.get_shape(node.output[0])
-
-    def op(op_type, inputs, **attr):
-        return ctx.make_node(op_type, inputs, attr=attr, op_name_scope=node.name).output[0]
-
-    def const(value, np_type=np.int64):
-        return ctx.make_const(utils.make_name(f"{node.name}_const"), np.asarray(value, np_type)).output[0]
-
-    segments = op("Reshape", [op("Cast", [num_segments], to=TensorProto.INT64), const([1])])  # [1]: S
-    data_shape = op("Shape", [data])
-    grid_shape = op("Concat", [segments, op("Slice", [data_shape, const([1]), const([rank]), const([0])])], axis=0)
-    np_dtype = utils.map_onnx_to_numpy_type(dtype)
-    ids64 = op("Cast", [ids], to=TensorProto.INT64)
-    inside = op("And", [op("GreaterOrEqual", [ids64, const(0)]), op("Less", [ids64, segments])])  # [P]
-    rows = op("Where", [inside, ids64, const(0)])
-    if rank > 1:
-        trailing = const(list(range(1, rank)))
-        rows, inside = op("Unsqueeze", [rows, trailing]), op("Unsqueeze", [inside, trailing])
-    updates = op("Where", [inside, data, const([0], np_dtype)])
-    indices = op("Expand", [rows, data_shape])  # [P, C...]: ScatterElements takes one index per value
-    grid = op("ConstantOfShape", [grid_shape], value=numpy_helper.from_array(np.zeros([1], np_dtype), "value"))
-    ctx.remove_node(node.name)
-    ctx.make_node("ScatterElements", [grid, indices, updates], attr={"axis": 0, "reduction": "add"},
-                  outputs=node.output, name=node.name, shapes=[out_shape], dtypes=[dtype])
-
-
-def _select_to_where(ctx, node, name, args):
-    """Select/SelectV2 -> ONNX Where, whatever the dtype (NaN-safe). SelectV2 broadcasts as Where does; Select (v1)
-    with a 1-D condition picks rows, so its condition is reshaped to [P, 1, ...]."""
-    del name, args
-    from tf2onnx import utils
-    cond_shape, x_shape = ctx.get_shape(node.input[0]), ctx.get_shape(node.input[1]) or ctx.get_shape(node.input[2])
-    if node.type == "Select" and cond_shape is not None and len(cond_shape) == 1 and (x_shape is None or
-                                                                                      len(x_shape) != 1):
-        utils.make_sure(x_shape is not None, "Select %s: a 1-D condition on an input of unknown rank", node.name)
-        shape = ctx.make_const(utils.make_name(f"{node.name}_shape"),
-                               np.array([-1] + [1] * (len(x_shape) - 1), np.int64)).output[0]
-        reshaped = ctx.make_node("Reshape", [node.input[0], shape], op_name_scope=node.name).output[0]
-        ctx.replace_input(node, node.input[0], reshaped, 0)
-    node.type = "Where"
-
-
-CUSTOM_OP_HANDLERS = {"UnsortedSegmentSum": (_segment_sum_to_scatter_elements, []),
-                      "SelectV2": (_select_to_where, []), "Select": (_select_to_where, [])}
-
-
 # -- export and checks ----------------------------------------------------------------------------------------------
 
 class _Errors(logging.Handler):
@@ -211,7 +151,8 @@ def _check_opset(opset: int) -> None:
 
 
 def convert_function(fn, input_signature, opset: int = DEFAULT_OPSET):
-    """A tf.function as an ONNX ModelProto with this module's handlers (`CUSTOM_OP_HANDLERS`); raises RuntimeError
+    """A tf.function as an ONNX ModelProto with the project's op handlers (`internals.tf2onnx_custom_op_handlers`:
+    unsorted_segment_sum as ScatterElements(add), selects as Where); raises RuntimeError
     naming what tf2onnx failed to convert (it logs failures and carries on)."""
     import tf2onnx
     _check_opset(opset)
@@ -219,7 +160,7 @@ def convert_function(fn, input_signature, opset: int = DEFAULT_OPSET):
     tf2onnx_logger.addHandler(errors)
     try:
         proto, _ = tf2onnx.convert.from_function(fn, input_signature=input_signature, opset=opset,
-                                                 custom_op_handlers=dict(CUSTOM_OP_HANDLERS))
+                                                 custom_op_handlers=internals.tf2onnx_custom_op_handlers())
     finally:
         tf2onnx_logger.removeHandler(errors)
     if errors.messages:
