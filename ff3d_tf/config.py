@@ -148,7 +148,12 @@ class ModelConfig:
     # hybrid = the point stages (pillarize, encode, scatter; ungrid head) in XLA, the convolutions as TensorFlow
     # graph kernels (oneDNN on CPU, faster there than XLA's); none = no XLA; auto = hybrid on CPU, xla on GPU/TPU.
     compile: str = "auto"
-    mixed_precision: bool = False  # bfloat16 compute, float32 variables (Keras "mixed_bfloat16")
+    # Precision of the convolutions (rows C-V; `ff3d_tf.model.compile.resolve_precision`): false = float32; true =
+    # bfloat16 with float32 variables (Keras "mixed_bfloat16"); auto = bfloat16 on a CPU where oneDNN's bfloat16
+    # convolutions beat float32 (amx_bf16, or AMD with avx512_bf16) in compile mode hybrid or none, float32 elsewhere
+    # (GPU, TPU, xla, Intel avx512_bf16 without AMX: slower, benchmarks/bf16_cpu.json). Points, pillar indices and
+    # sums, the head and the loss are float32 in every setting.
+    mixed_precision: bool | str = False
 
     @property
     def jit_compile(self) -> bool:
@@ -172,6 +177,8 @@ class ModelConfig:
             raise ConfigError("model.decoder_dims[2][0] must equal point_feature_dim (row X concatenates them)")
         if self.compile not in COMPILE_MODES:
             raise ConfigError(f"model.compile={self.compile!r}: one of {', '.join(COMPILE_MODES)}")
+        if not (isinstance(self.mixed_precision, bool) or self.mixed_precision == "auto"):
+            raise ConfigError(f"model.mixed_precision={self.mixed_precision!r}: must be one of true, false, auto")
 
 
 @dataclasses.dataclass(frozen=True)

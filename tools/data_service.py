@@ -1,13 +1,16 @@
 """tf.data service roles for the training input: decoding and pairing on machines other than the trainers'.
 
 python tools/data_service.py --dispatcher --port 5050 [--work_dir gs://bucket/dispatcher]
-python tools/data_service.py --worker --dispatcher_address host:5050 [--port 5051]
+python tools/data_service.py --worker --dispatcher_address host:5050 [--port 5051] [--host this-machine]
 python tools/train.py ... --data_service_address grpc://host:5050
 
 Workers need the segment files at the same paths as the trainers (a shared filesystem or gs://). Each role serves
-until it is stopped (Ctrl-C / SIGTERM).
+until it is stopped (Ctrl-C / SIGTERM: it stops its server and exits with status 0). With --work_dir the dispatcher
+is fault-tolerant: restart it with the same --port and --work_dir and training goes on (see README, "Faults and
+preemption"); a killed worker can be restarted at any time (any port), and training goes on meanwhile.
 """
 import argparse
+import signal
 import sys
 import time
 
@@ -24,13 +27,15 @@ def main():
     p.add_argument("--port", type=int, default=0, help="port to listen on (0: any free port, printed)")
     p.add_argument("--dispatcher_address", help="host:port of the dispatcher (workers)")
     p.add_argument("--work_dir", default=None, help="dispatcher state, so a restarted dispatcher resumes its jobs")
+    p.add_argument("--host", default=None, help="worker: the host name trainers reach it by (default localhost)")
     args = p.parse_args()
     if args.worker and not args.dispatcher_address:
         sys.exit("--worker needs --dispatcher_address host:port")
     server = (start_dispatcher(args.port, args.work_dir) if args.dispatcher
-              else start_worker(args.dispatcher_address, args.port))
+              else start_worker(args.dispatcher_address, args.port, args.host))
     print(f"{'dispatcher' if args.dispatcher else 'worker'} serving on port {server.port}"
           + (f"; trainers use --data_service_address {server.target}" if args.dispatcher else ""), flush=True)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops the server as Ctrl-C does
     try:
         while True:  # not server.join(): a blocking C++ call would keep Python's signal handling (Ctrl-C) waiting
             time.sleep(1.0)

@@ -22,6 +22,15 @@ functions nest inside the caller's program: the values are the same, and so is t
 training call (BatchNorm statistics assigned inside the nested functions) makes TensorFlow compile the caller's
 program again at every call (measured on CPU, tiny test config, 2 x 1,000 points: 6.7 s a gradient step in mode xla,
 0.02 s with the flag).
+
+Precision (`model.mixed_precision` = false | true | auto, `resolve_precision`): "bfloat16" runs the dense stages
+(rows C-V: the convolutions, their BatchNorm and the upsampling blocks) in bfloat16 with float32 variables (Keras
+"mixed_bfloat16"); the point stages (coordinates, pillar indices, the point encoder, the pillar sums, the head) and
+the loss stay float32 in every precision. auto = bfloat16 where oneDNN's bfloat16 convolutions are expected to beat
+its float32 ones (`bf16_convolutions_faster`: a CPU with amx_bf16, or an AMD CPU with avx512_bf16) and the
+convolutions run as TensorFlow kernels (compile mode hybrid or none); float32 elsewhere: GPU, TPU, mode xla, CPUs
+without those flags, and Intel CPUs with avx512_bf16 but no AMX, where oneDNN's avx512_core_bf16 convolution
+measured slower than its float32 one (benchmarks/bf16_cpu.json).
 """
 from __future__ import annotations
 
@@ -31,6 +40,12 @@ from ff3d_tf.config import COMPILE_MODES
 
 RESOLVED_MODES = tuple(m for m in COMPILE_MODES if m != "auto")
 AUTO_CHOICE = {"CPU": "hybrid", "GPU": "xla", "TPU": "xla"}
+PRECISIONS = ("float32", "bfloat16")  # what `resolve_precision` returns: the compute dtype of rows C-V
+# CPU flags (Linux /proc/cpuinfo) under which oneDNN has bfloat16 convolution kernels of its own: AVX-512 BF16
+# (Intel Cooper Lake, Sapphire Rapids and later; AMD Zen 4 and later) and AMX-BF16 (Intel Sapphire Rapids and later,
+# listed only where the OS enables the tiles; a VM may hide them).
+BF16_CPU_FLAGS = ("avx512_bf16", "amx_bf16")
+CPUINFO_PATH = "/proc/cpuinfo"
 
 
 def accelerator_type() -> str:
@@ -68,3 +83,66 @@ def xla_function(fn):
     """`fn` as a tf.function compiled by XLA (also its gradient). Traced once per call of the returned function's
     trace, so callers create it while tracing their own graph."""
     return tf.function(fn, jit_compile=True, autograph=False)
+
+
+def cpu_bf16_support(cpuinfo: str | None = None) -> tuple[str, tuple[str, ...]]:
+    """(vendor, flags): the "vendor_id" of `cpuinfo` (the text of /proc/cpuinfo; default: read `CPUINFO_PATH`), e.g.
+    "GenuineIntel" or "AuthenticAMD" ("" if none), and the flags of `BF16_CPU_FLAGS` that every processor in it lists
+    on its "flags" line. ("", ()) where the file cannot be read; () where it has no flags line (not x86)."""
+    if cpuinfo is None:
+        try:
+            with open(CPUINFO_PATH) as f:
+                cpuinfo = f.read()
+        except OSError:
+            return "", ()
+    fields = [[part.strip() for part in line.split(":", 1)] for line in cpuinfo.splitlines() if ":" in line]
+    vendor = next((value for key, value in fields if key == "vendor_id"), "")
+    flag_sets = [set(value.split()) for key, value in fields if key == "flags"]
+    common = set.intersection(*flag_sets) if flag_sets else set()
+    return vendor, tuple(f for f in BF16_CPU_FLAGS if f in common)
+
+
+def bf16_convolutions_faster(vendor: str, flags: tuple[str, ...]) -> tuple[bool, str]:
+    """(whether oneDNN's bfloat16 convolutions are expected to beat float32 on this CPU, why).
+
+    amx_bf16: AMX tiles (TDPBF16PS). AMD with avx512_bf16 (Zen 4 and later): measured 1.9x faster at 32K points and
+    1.35x at 1M than float32 (issue 20, paper config, mode hybrid). Intel with avx512_bf16 and no AMX: oneDNN's
+    brg_conv_fwd:avx512_core_bf16 measured 1.6x slower than its float32 brg_conv_fwd:avx512_core on a 3x3 64 -> 64
+    convolution of a 2 x 512 x 512 grid, and the paper-config forward 2.2x slower (benchmarks/bf16_cpu.json)."""
+    if "amx_bf16" in flags:
+        return True, "CPU has amx_bf16"
+    if "avx512_bf16" in flags and vendor == "AuthenticAMD":
+        return True, "AMD CPU has avx512_bf16"
+    if "avx512_bf16" in flags:
+        return False, (f"{vendor or 'this'} CPU has avx512_bf16 but no amx_bf16: oneDNN's bfloat16 convolutions are "
+                       f"slower than float32 there")
+    return False, f"CPU has none of {', '.join(BF16_CPU_FLAGS)}"
+
+
+def resolve_precision(mixed_precision, compile_mode: str, device_type: str | None = None,
+                      cpu: tuple[str, tuple[str, ...]] | None = None) -> tuple[str, str]:
+    """(precision, reason): `model.mixed_precision` (false, true or "auto") -> "float32" or "bfloat16" for a resolved
+    `compile_mode` on `device_type` (default: the visible accelerator) with `cpu` = (vendor, flags) (default:
+    `cpu_bf16_support()`). `reason` says why, for the log line at start."""
+    check_resolved(compile_mode)
+    if mixed_precision is True or mixed_precision is False:
+        return ("bfloat16" if mixed_precision else "float32"), "as set"
+    if mixed_precision != "auto":
+        raise ValueError(f"model.mixed_precision={mixed_precision!r}: true, false or auto")
+    device_type = device_type or accelerator_type()
+    if device_type != "CPU":
+        return "float32", f"{device_type}: auto keeps float32 off the CPU"
+    if compile_mode == "xla":
+        return "float32", "model.compile=xla: XLA's CPU convolutions are not oneDNN's bfloat16 kernels"
+    faster, reason = bf16_convolutions_faster(*(cpu_bf16_support() if cpu is None else cpu))
+    return ("bfloat16" if faster else "float32"), reason
+
+
+def describe_precision(precision: str) -> str:
+    """One line saying what runs in which dtype (printed at start, recorded with benchmarks)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision={precision!r}: one of {', '.join(PRECISIONS)}")
+    if precision == "float32":
+        return "everything in float32"
+    return ("convolutions (rows C-V) in bfloat16 with float32 variables; points, pillar sums, head and loss in "
+            "float32")

@@ -8,6 +8,11 @@ Outputs (dict): flow_mps [B,N0,3] (m/s, vehicle frame at t0; 0 where invalid), p
 Both clouds share the point encoder (A) and the convolutional encoder (C-R): the two frames are stacked along the
 batch axis and pass through the same layers once. The decoder (S, T, U, V) takes the depth-wise concatenation of the
 two encoders' layers (t0 first), and the head (W-Z) regresses flow for the t0 points.
+
+Precision: the dense stages (rows C-V) compute in the dtype of the global Keras policy while the model is built
+(`build_model`: "mixed_bfloat16" for `model.mixed_precision` resolved to bfloat16, see `ff3d_tf.model.compile`); the
+point stages (rows A, B, W-Z: coordinates, pillar indices, point encoder, pillar sums, head) are float32 layers in
+every precision, and so are all variables.
 """
 from __future__ import annotations
 
@@ -39,6 +44,8 @@ class FastFlow3D(keras.Model):
       "none"   no XLA.
     Eager calls run op by op in every mode, and a caller that compiles the whole call with XLA passes
     `inline_stages=True` (one program, whatever the mode). `ff3d_tf.model.compile` resolves the config's "auto".
+    `conv_dtype` (float32 or bfloat16) is the compute dtype of the dense stages, set by the global dtype policy at
+    construction; the point stages are float32 layers whatever the policy.
     `point_chunk_size`: points (over the flattened batch) that the point encoder encodes and scatters at a time.
     """
 
@@ -58,11 +65,13 @@ class FastFlow3D(keras.Model):
         self.compile_mode = compile_lib.check_resolved(compile_mode)
         self.point_chunk_size = int(point_chunk_size)
 
-        # Pillar indices and offsets always in float32 (a bfloat16 x would move points across pillars).
+        # The point stages in float32 under any global policy: pillar indices and offsets (a bfloat16 x would move
+        # points across pillars), the point encoder and its pillar sums, and the head. XLA's CPU backend has no
+        # bfloat16 arithmetic of its own (it converts to float32 and back), so bfloat16 would not make them faster.
         self.pillarize = L.Pillarize(num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, name="pillarize",
                                      dtype="float32")
         self.point_encoder = L.PointEncoder(self.point_feature_dim, self.num_pillars_x, self.num_pillars_y,
-                                            chunk_size=self.point_chunk_size, name="A")
+                                            chunk_size=self.point_chunk_size, name="A", dtype="float32")
         letters = iter(string.ascii_uppercase[2:] + "".join(f"E{i}" for i in range(100)))
         # Every layer is also a plain attribute (conv_C, ..., upsample_S, ...): TF checkpoints track attributes, not
         # the Keras-tracked lists below, so optimizer state and weights round-trip through tf.train.Checkpoint.
@@ -80,9 +89,14 @@ class FastFlow3D(keras.Model):
             self.upsample_skips.append(getattr(self, f"upsample_{n}"))
         self.conv_v = keras.layers.Conv2D(self.decoder_dims[-1][0], 3, padding="same", use_bias=False,
                                           kernel_initializer="glorot_uniform", name="V")
-        self.head_y = L.UngridHead(self.head_hidden_dim, name="Y")
+        self.head_y = L.UngridHead(self.head_hidden_dim, name="Y", dtype="float32")
         self.head_z = keras.layers.Dense(3, kernel_initializer="zeros" if self.zero_init_output else "glorot_uniform",
-                                         name="Z")
+                                         name="Z", dtype="float32")
+
+    @property
+    def conv_dtype(self) -> str:
+        """"float32" or "bfloat16": the compute dtype of the dense stages (rows C-V)."""
+        return self.conv_v.compute_dtype
 
     def build(self, input_shape=None):
         """Creates every variable from the configuration alone (the shapes depend on the grid, not on the inputs)."""
@@ -135,7 +149,8 @@ class FastFlow3D(keras.Model):
         feature, encoding) (`UngridHead.composed_with`); each t0 point's own share of the flow is taken while its
         features are computed, chunk by chunk, so no [N0, C] feature array is kept for the head.
 
-        Returns a dict: bev_features [2B,H,W,C] (t0 samples first, then t-1), and for the head: point_flow_t0
+        Returns a dict: bev_features [2B,H,W,C] (t0 samples first, then t-1; the float32 pillar sums in
+        `conv_dtype`, cast here so that XLA fuses the cast with the concatenation), and for the head: point_flow_t0
         [B,N0,3] (m/s, float32; the flow without the grid part and the bias), pillar_ids_t0 [B,N0], point_valid_t0
         [B,N0].
         """
@@ -148,14 +163,15 @@ class FastFlow3D(keras.Model):
         (grid_t0, grid_tm1), (point_flow_t0, _) = self.point_encoder(
             [enc_t0, enc_tm1], [valid_t0, valid_tm1], [ids_t0, ids_tm1], point_projections=(head_point_kernel, None),
             training=training)
-        return {"bev_features": tf.concat([grid_t0, grid_tm1], 0),
+        return {"bev_features": tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_dtype),
                 "point_flow_t0": tf.cast(point_flow_t0, tf.float32), "pillar_ids_t0": ids_t0,
                 "point_valid_t0": valid_t0}
 
     def dense_stages(self, bev_features, training=False):
-        """Rows C-V: bev_features [2B,H,W,C] (t0 samples first) -> grid flow embedding [B,H,W,C_V]."""
-        skips = [bev_features]
-        x = bev_features
+        """Rows C-V: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> grid flow
+        embedding [B,H,W,C_V] in `conv_dtype`."""
+        x = tf.cast(bev_features, self.conv_dtype)
+        skips = [x]
         for stage in self.encoder_stages:
             for block in stage:
                 x = block(x, training=training)
@@ -176,9 +192,9 @@ class FastFlow3D(keras.Model):
         takes its cell's (row W) and adds its own part (`point_flow_t0`) and the bias."""
         valid = encoded["point_valid_t0"]
         k_grid, _, _, bias = self.head_y.composed_with(self.head_z)
-        cell_flow = ops.dense_last_axis(grid_flow_embedding, tf.cast(k_grid, grid_flow_embedding.dtype))
-        flow = (tf.cast(self.head_y.ungrid(cell_flow, encoded["pillar_ids_t0"]), tf.float32) +
-                encoded["point_flow_t0"] + bias)
+        # The head in float32 also after bfloat16 convolutions (the cast fuses into the projection under XLA).
+        cell_flow = ops.dense_last_axis(tf.cast(grid_flow_embedding, tf.float32), k_grid)
+        flow = self.head_y.ungrid(cell_flow, encoded["pillar_ids_t0"]) + encoded["point_flow_t0"] + bias
         flow = tf.where(valid[..., None], flow, tf.zeros_like(flow))
         return {"flow_mps": flow, "point_valid": valid}
 
@@ -214,16 +230,21 @@ def build_model(cfg: ExperimentConfig, compile_mode: str | None = None,
     """The model of a config, with its variables created (so count_params works before the first call).
 
     `compile_mode` overrides `cfg.model.compile`; "auto" is resolved for the visible devices (and logged).
+    `cfg.model.mixed_precision` is resolved for that mode, the device and the CPU's flags
+    (`compile_lib.resolve_precision`, logged: "model.mixed_precision=auto -> bfloat16 (AMD CPU has avx512_bf16; ...)").
     `point_chunk_size` overrides the point encoder's chunk (default `ops.POINT_CHUNK`; tests take a small one).
     """
     m = cfg.model
     requested = m.compile if compile_mode is None else compile_mode
     resolved = compile_lib.resolve_compile_mode(requested)
     _LOG.info("model.compile=%s -> %s (%s)", requested, resolved, compile_lib.describe(resolved))
+    precision, reason = compile_lib.resolve_precision(m.mixed_precision, resolved)
+    _LOG.info("model.mixed_precision=%s -> %s (%s; %s)", str(m.mixed_precision).lower(), precision, reason,
+              compile_lib.describe_precision(precision))
     previous = keras.config.dtype_policy()
-    # Mixed precision: bfloat16 compute, float32 variables (no loss scaling needed); the layers take the policy that
-    # is global while they are constructed.
-    keras.config.set_dtype_policy("mixed_bfloat16" if m.mixed_precision else "float32")
+    # bfloat16: the dense stages compute in bfloat16 with float32 variables (no loss scaling needed: bfloat16 has
+    # float32's exponent range); they take the policy that is global while they are constructed.
+    keras.config.set_dtype_policy("mixed_bfloat16" if precision == "bfloat16" else "float32")
     try:
         # The model itself stays float32 so that it does not cast the input points (only its layers compute in
         # the mixed policy).

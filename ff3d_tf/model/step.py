@@ -7,7 +7,7 @@ a labelled batch in, the new `TrainState` with the loss and the gradients' globa
   loss, gradients, new BN statistics   `loss_and_grads_fn` (`batch_flow_loss`, the model run with `training=True`)
   -> all_reduce (optional)             the runner's cross-replica reduction (identity on one device)
   -> global norm, clipping             `train.grad_clip_norm` (None: no clipping)
-  -> Adam                              `adam_update`, Keras 3's Adam written out (see there)
+  -> Adam                              `adam_update` (`adam_apply`: Keras 3's Adam written out)
   -> non-finite skip                   a non-finite loss or norm changes nothing: weights, BN statistics, slots,
                                        iteration count (the runner counts it)
 
@@ -93,34 +93,48 @@ def loss_and_grads_fn(cfg: ExperimentConfig, model, global_batch_size: int, inli
                 tape.watch(weights)
                 outputs, new_bn_statistics = model.stateless_call(weights, bn_statistics, model_inputs(batch),
                                                                   training=True, inline_stages=inline_stages)
-            loss = batch_flow_loss(batch, outputs, cfg.train.background_weight, global_batch_size)
+            loss = batch_flow_loss(batch, outputs, cfg.train.background_weight, global_batch_size,
+                                   pseudo_labels=cfg.data.labels == "pseudo")
         return loss, tape.gradient(loss, sources), list(new_bn_statistics)
 
     return loss_and_grads
 
 
-def adam_update(cfg: ExperimentConfig, state: TrainState, grads: list) -> TrainState:
-    """`state` after one Adam update with `grads`: `keras.optimizers.Adam.update_step` (Keras 3) for every weight,
-    the same operations in the same order, then the iteration count + 1 (BatchNorm statistics unchanged):
+def adam_apply(params: list, grads: list, m: list, v: list, step, learning_rate, beta_1: float, beta_2: float,
+               epsilon: float) -> tuple[list, list, list]:
+    """One Adam update of the tensors `params` (a list; `grads`, `m`, `v` alike, one per tensor): the project's one
+    Adam arithmetic, `keras.optimizers.Adam.update_step` (Keras 3) written out, the same operations in the same order:
 
-      t = iterations + 1, alpha = lr(iterations) sqrt(1 - b2^t) / (1 - b1^t),
+      t = step + 1, alpha = learning_rate sqrt(1 - b2^t) / (1 - b1^t),
       m += (g - m)(1 - b1), v += (g^2 - v)(1 - b2), w -= m alpha / (sqrt(v) + eps).
+
+    `step`: the updates applied before this one (an integer tensor); `learning_rate` a number or scalar tensor.
+    Returns (new params, new m, new v). Pure tensors, no variables: usable inside any compiled loop
+    (`ff3d_tf.labels.nsfp` fits its MLPs with it)."""
+    dtype = params[0].dtype
+    lr = tf.cast(learning_rate, dtype)
+    local_step = tf.cast(step + 1, dtype)
+    alpha = lr * tf.sqrt(1 - tf.pow(tf.cast(beta_2, dtype), local_step)) / (
+        1 - tf.pow(tf.cast(beta_1, dtype), local_step))
+    grads = [tf.cast(g, dtype) for g in grads]
+    m = [mi + (g - mi) * (1 - beta_1) for mi, g in zip(m, grads)]
+    v = [vi + (tf.square(g) - vi) * (1 - beta_2) for vi, g in zip(v, grads)]
+    params = [w - mi * alpha / (tf.sqrt(vi) + epsilon) for w, mi, vi in zip(params, m, v)]
+    return params, m, v
+
+
+def adam_update(cfg: ExperimentConfig, state: TrainState, grads: list) -> TrainState:
+    """`state` after one Adam update with `grads` (`adam_apply` with the configured learning rate at
+    `state.iterations`, betas and `ADAM_EPSILON`), then the iteration count + 1 (BatchNorm statistics unchanged).
 
     Written out because Keras' stateless form, `optimizer.stateless_apply`, raises on the TensorFlow backend
     (keras/src/backend/tensorflow/optimizer.py: "not supported with the TensorFlow backend (as it is incompatible
     with tf.distribute)"); tests/model/test_step.py checks it against the optimizer itself.
     """
-    schedule, beta_1, beta_2 = learning_rate_schedule(cfg), cfg.train.beta_1, cfg.train.beta_2
+    schedule = learning_rate_schedule(cfg)
     learning_rate = schedule(state.iterations) if callable(schedule) else schedule
-    dtype = state.weights[0].dtype  # float32 (the model's variables, also under mixed precision)
-    lr = tf.cast(learning_rate, dtype)
-    local_step = tf.cast(state.iterations + 1, dtype)
-    alpha = lr * tf.sqrt(1 - tf.pow(tf.cast(beta_2, dtype), local_step)) / (
-        1 - tf.pow(tf.cast(beta_1, dtype), local_step))
-    grads = [tf.cast(g, dtype) for g in grads]
-    adam_m = [m + (g - m) * (1 - beta_1) for m, g in zip(state.adam_m, grads)]
-    adam_v = [v + (tf.square(g) - v) * (1 - beta_2) for v, g in zip(state.adam_v, grads)]
-    weights = [w - m * alpha / (tf.sqrt(v) + ADAM_EPSILON) for w, m, v in zip(state.weights, adam_m, adam_v)]
+    weights, adam_m, adam_v = adam_apply(state.weights, grads, state.adam_m, state.adam_v, state.iterations,
+                                         learning_rate, cfg.train.beta_1, cfg.train.beta_2, ADAM_EPSILON)
     return TrainState(weights, state.bn_statistics, adam_m, adam_v, state.iterations + 1)
 
 

@@ -2,6 +2,12 @@
 
 The trainer's side is `trainer.training_dataset(..., data_service_address=...)`; these start the servers, for
 `tools/data_service.py` and for tests (in-process).
+
+Faults: the trainers read with dynamic sharding, so a worker that dies only takes the elements it held (the split
+it was reading and its buffered batches: at most once, not exactly once); the others keep feeding the job, and a
+restarted worker registers again and is given work. A dispatcher with a `work_dir` runs in fault-tolerant mode: it
+journals its state (datasets, jobs, splits handed out) before answering, so restarted on the same port and work dir
+it resumes the job, and the trainers and workers reconnect by themselves (they retry the dispatcher's address).
 """
 from __future__ import annotations
 
@@ -33,10 +39,12 @@ def start_dispatcher(port: int = 0, work_dir: str | None = None) -> Server:
     return Server(server, int(target.rsplit(":", 1)[1]), target)
 
 
-def start_worker(dispatcher_address: str, port: int = 0) -> Server:
-    """A worker registered with the dispatcher at host:port (a grpc:// prefix is accepted)."""
+def start_worker(dispatcher_address: str, port: int = 0, host: str | None = None) -> Server:
+    """A worker registered with the dispatcher at host:port (a grpc:// prefix is accepted). `host`: the name the
+    trainers reach this worker by (default localhost: trainers on the same machine)."""
     address = dispatcher_address.split("://", 1)[-1]
     server = tf.data.experimental.service.WorkerServer(
-        tf.data.experimental.service.WorkerConfig(dispatcher_address=address, port=port))
+        tf.data.experimental.service.WorkerConfig(dispatcher_address=address, port=port,
+                                                  worker_address=f"{host}:%port%" if host else None))
     worker_port = int(server._address.rsplit(":", 1)[1])  # noqa: SLF001 - the bound port, when 0 was asked for
     return Server(server, worker_port, f"grpc://{address}")

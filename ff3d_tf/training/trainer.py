@@ -6,6 +6,15 @@ summed over replicas, Adam), its forward and backward pass XLA-compiled; checkpo
 and on SIGINT/SIGTERM; resume from `--model_dir` at the same step with the same optimizer state and the same data
 order (the deterministic stream is fast-forwarded); non-finite steps are skipped and counted and never reach the
 weights.
+
+Faults of a multi-worker job (see README, "Faults and preemption"):
+- a lost worker (killed, stopped, unreachable) ends every other worker within `train.peer_timeout_s` with
+  `PeerLostError` (one line naming the lost task; `tools/train.py` exits with `EXIT_PEER_LOST`), never with a
+  checkpoint of the failed step: the collectives' own timeout, TensorFlow's coordination-service heartbeat and a
+  step watchdog bound the wait;
+- SIGTERM/SIGINT to any one worker stops all of them after the same step: every step all-reduces a "stop" flag
+  with its gradients, so every worker sees the request at the same step, saves it and returns `preempted`
+  (`EXIT_PREEMPTED`). Restarting the same commands resumes from the chief's newest intact checkpoint.
 """
 from __future__ import annotations
 
@@ -13,7 +22,11 @@ import hashlib
 import json
 import logging
 import os
+import re
 import signal
+import socket
+import sys
+import threading
 import time
 
 import keras
@@ -23,7 +36,7 @@ import tensorflow as tf
 from ff3d_tf import internals
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
-from ff3d_tf.checkpoints import restore_newest_intact
+from ff3d_tf.checkpoints import list_checkpoints, restore_newest_intact
 from ff3d_tf.metrics import SceneFlowMetrics
 from ff3d_tf.model import build_model
 from ff3d_tf.model import step as step_lib
@@ -45,9 +58,65 @@ class NonFiniteLossError(RuntimeError):
     """Too many non-finite steps in a row (`train.max_nonfinite_steps_in_row`); the weights were never touched."""
 
 
-def make_strategy() -> tf.distribute.Strategy:
+# Exit statuses of tools/train.py (sysexits.h names): a lost peer and a preemption are told apart from a failure (1).
+EXIT_PEER_LOST = 69  # EX_UNAVAILABLE: a worker of the job was lost; restart every worker with the same command
+EXIT_PREEMPTED = 75  # EX_TEMPFAIL: preempted (SIGTERM/SIGINT); every worker saved the same step; restart me
+
+
+class PeerLostError(RuntimeError):
+    """A multi-worker job lost a worker (or one never joined): this worker stopped without saving a step in flight.
+
+    `lost` names the task ("worker 1 (127.0.0.1:2223)") or says that it is unknown; the message is one line that
+    ends by saying how to resume."""
+
+    def __init__(self, message: str, lost: str):
+        super().__init__(message)
+        self.lost = lost
+
+
+def _resume_hint(checkpoint_dir: str | None) -> str:
+    newest = list_checkpoints(checkpoint_dir) if checkpoint_dir else []
+    where = f" (newest now: {newest[0]})" if newest else ""
+    return (f"Restart every worker with the same command: training resumes from the chief's newest intact "
+            f"checkpoint{where}")
+
+
+def lost_peer_error(lost: str, step: int, reason: str, waited_s: float, checkpoint_dir: str | None) -> PeerLostError:
+    """The error of a worker that lost a peer after `step` (the last step every worker finished)."""
+    return PeerLostError(f"lost {lost} after step {step} (noticed after {waited_s:.1f} s: {reason}); this worker "
+                         f"stopped without saving the unfinished step. {_resume_hint(checkpoint_dir)}", lost)
+
+
+def make_strategy(peer_timeout_s: float | None = None, join_timeout_s: float | None = None) -> tf.distribute.Strategy:
+    """MultiWorkerMirroredStrategy when TF_CONFIG is set (each collective times out after `peer_timeout_s`; the
+    wait for every worker to join ends after `join_timeout_s` with `PeerLostError`), else MirroredStrategy over the
+    GPUs (or the logical CPUs), else one device."""
     if os.environ.get("TF_CONFIG"):
-        return tf.distribute.MultiWorkerMirroredStrategy()
+        options = tf.distribute.experimental.CommunicationOptions(timeout_seconds=peer_timeout_s)
+        resolver = tf.distribute.cluster_resolver.TFConfigClusterResolver()
+        cluster = _cluster_of(resolver)
+        if cluster is None:
+            return tf.distribute.MultiWorkerMirroredStrategy(resolver, communication_options=options)
+        me, tasks = cluster
+
+        def not_joined(waited_s, err=None):
+            missing = lost_task(getattr(err, "message", "") or "", me, tasks)
+            why = f" ({_short_reason(err)})" if err is not None else ""
+            return PeerLostError(f"the job did not start: {missing} did not join within {waited_s:.0f} s{why} "
+                                 f"(train.peer_join_timeout_s). Start every worker with the same command; "
+                                 f"training resumes from the chief's newest intact checkpoint", missing)
+
+        t0 = time.monotonic()
+        if join_timeout_s:
+            missing = _join_barrier(me, tasks, join_timeout_s)
+            if missing:
+                raise not_joined(time.monotonic() - t0) from None
+        try:
+            return tf.distribute.MultiWorkerMirroredStrategy(resolver, communication_options=options)
+        except tf.errors.OpError as e:
+            if not is_peer_error(e):
+                raise
+            raise not_joined(time.monotonic() - t0, e) from None
     gpus = tf.config.list_logical_devices("GPU")
     if gpus:
         return tf.distribute.MirroredStrategy([d.name for d in gpus])
@@ -67,6 +136,170 @@ def _chief_and_write_dir(strategy: tf.distribute.Strategy, model_dir: str) -> tu
     return False, os.path.join(model_dir, f"tmp_{task_type}_{task_id}")
 
 
+def _cluster_tasks(strategy: tf.distribute.Strategy) -> tuple[str, list[tuple[str, int, str]]] | None:
+    """(this task's name, [(job, index, address) of every task]) of a job of several workers; None otherwise."""
+    if not isinstance(strategy, tf.distribute.MultiWorkerMirroredStrategy):
+        return None
+    return _cluster_of(strategy.cluster_resolver)
+
+
+def _cluster_of(resolver) -> tuple[str, list[tuple[str, int, str]]] | None:
+    spec = resolver.cluster_spec().as_dict()
+    tasks = [(job, i, addr) for job in sorted(spec) for i, addr in
+             (enumerate(spec[job]) if isinstance(spec[job], list) else sorted(spec[job].items()))]
+    if len(tasks) < 2:
+        return None
+    return f"{resolver.task_type} {resolver.task_id}", tasks
+
+
+_TASK_RE = re.compile(r"/job:(\w+)/replica:\d+/task:(\d+)")
+_ADDRESS_RE = re.compile(r"(?:ipv4:|//|\s|^)((?:\d{1,3}\.){3}\d{1,3}:\d+|localhost:\d+|\[[0-9a-f:]+\]:\d+)")
+# The TF errors a lost peer shows up as: a refused or reset connection, a collective or heartbeat timeout, the
+# coordination service's error (after a peer missed its heartbeats), or collectives aborted because of either.
+_PEER_ERROR_TYPES = (tf.errors.UnavailableError, tf.errors.DeadlineExceededError, tf.errors.CancelledError,
+                     tf.errors.AbortedError)
+_PEER_ERROR_WORDS = re.compile(r"heartbeat|unhealthy|Collective ops is aborted|CoordinationService|coordination "
+                               r"service|incarnation|Failed to connect|Connection refused|Connection reset|Socket "
+                               r"closed|RecvBuf|CompleteInstance|CompleteGroup|timed out", re.IGNORECASE)
+
+
+def is_peer_error(err: BaseException) -> bool:
+    """Whether a TF error of a multi-worker job is the loss of a peer (not a bug or a bad input of this worker)."""
+    if not isinstance(err, tf.errors.OpError):
+        return False
+    return isinstance(err, _PEER_ERROR_TYPES) or bool(_PEER_ERROR_WORDS.search(err.message or ""))
+
+
+def _reachable(address: str, timeout_s: float = 1.0) -> bool:
+    host, port = address.rsplit(":", 1)
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
+def lost_task(message: str, me: str, tasks: list[tuple[str, int, str]]) -> str:
+    """The task a lost-peer error is about, as "worker 1 (127.0.0.1:2223)": the first other task the message names
+    (by /job:x/task:i or by address), else the first whose port refuses a connection (a dead process); a task that
+    is stopped or hung still accepts connections, so then it is "an unnamed peer"."""
+    by_name = {f"{job} {i}": addr for job, i, addr in tasks}
+    named = [f"{m[0]} {int(m[1])}" for m in _TASK_RE.findall(message)]
+    by_address = {addr.replace("localhost", "127.0.0.1"): f"{job} {i}" for job, i, addr in tasks}
+    named += [by_address[a.replace("localhost", "127.0.0.1")] for a in _ADDRESS_RE.findall(message)
+              if a.replace("localhost", "127.0.0.1") in by_address]
+    for task in named:
+        if task != me and task in by_name:
+            return f"{task} ({by_name[task]})"
+    leader = "chief 0" if "chief 0" in by_name else "worker 0"  # where TF's coordination service runs
+    if "CoordinationService" in message and leader != me:
+        return f"{leader} ({by_name[leader]}, the coordination service's host: it stopped answering heartbeats)"
+    for task, addr in by_name.items():
+        if task != me and not _reachable(addr):
+            return f"{task} ({addr}, its port refuses connections)"
+    others = [f"{t} ({a})" for t, a in by_name.items() if t != me]
+    silent = "stopped, hung, or busy for longer than train.peer_timeout_s, e.g. in the chief's evaluation"
+    if len(others) == 1:
+        return f"{others[0]} (it did not answer: {silent})"
+    return f"a peer that did not answer ({silent}); every peer's port still accepts connections: {', '.join(others)}"
+
+
+def _short_reason(err: BaseException) -> str:
+    """The error's type and its first line that is not TensorFlow's frame (\"Graph execution error\", \"Detected at
+    node\", the Python frames, the node name), at most 200 characters."""
+    text = getattr(err, "message", None) or str(err)
+    lines = [ln.strip() for ln in text.splitlines()]
+    frame = ("Graph execution error", "Detected at node", "File \"", "[[")
+    first = next((ln for ln in lines if ln and not ln.startswith(frame)), "")
+    first = first.split(" [[", 1)[0]
+    return f"{type(err).__name__}: {first[:200]}"
+
+
+def _join_barrier(me: str, tasks: list[tuple[str, int, str]], timeout_s: float) -> list[str]:
+    """Waits until every other task's port accepts a connection; returns the tasks still missing after `timeout_s`
+    ([] once all are there).
+
+    TensorFlow's own join (the coordination service's registration, inside the strategy's constructor) holds the
+    GIL and waits up to an hour for a worker that never comes. So each worker first listens on its own TF_CONFIG
+    port with a plain socket (never accepting: a connection completes in the backlog) and probes the others'; a
+    peer counts as there when its placeholder or its TensorFlow server answers. The placeholder is closed before
+    TensorFlow binds the port. A worker that dies in the seconds between this barrier and TensorFlow's registration
+    still leaves the others in TensorFlow's wait."""
+    addresses = {f"{job} {i}": addr for job, i, addr in tasks}
+    port = int(addresses[me].rsplit(":", 1)[1])
+    placeholder = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    placeholder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        placeholder.bind(("", port))
+    except OSError as e:
+        placeholder.close()
+        raise RuntimeError(f"port {port} of {me} ({addresses[me]}, from TF_CONFIG) is in use ({e.strerror}): an "
+                           f"earlier worker of this job may still be running; stop it, or give this task a free "
+                           f"port") from None
+    try:
+        placeholder.listen(64)
+        deadline = time.monotonic() + timeout_s
+        missing = [t for t in addresses if t != me]
+        while missing:
+            missing = [t for t in missing if not _reachable(addresses[t], timeout_s=1.0)]
+            if not missing or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
+        return missing
+    finally:
+        placeholder.close()
+
+
+class _Watchdog:
+    """A daemon thread that ends the process when a multi-worker wait (one step; the join of every worker) lasts
+    longer than `limit_s` after `arm()`.
+
+    The backstop of the lost-peer bound: the collectives time out by themselves and TensorFlow's coordination
+    service notices a worker that stops heartbeating, but a step can also wait outside a collective (on a peer's
+    connection setup, on an input that no longer answers) and the join has no bound of its own. The watchdog prints
+    the one-line message (`on_expire(seconds)` builds it) and exits with EXIT_PEER_LOST: there is nothing safe to
+    save from a step in flight, and a Python exception cannot interrupt the C++ wait."""
+
+    def __init__(self, limit_s: float, on_expire):
+        self.limit_s, self.on_expire = limit_s, on_expire
+        self._armed_at = None
+        self._cond = threading.Condition()
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="step-watchdog", daemon=True)
+        self._thread.start()
+
+    def arm(self) -> None:
+        with self._cond:
+            self._armed_at = time.monotonic()
+            self._cond.notify()
+
+    def disarm(self) -> None:
+        with self._cond:
+            self._armed_at = None
+            self._cond.notify()
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed, self._armed_at = True, None
+            self._cond.notify()
+        self._thread.join(5)
+
+    def _run(self) -> None:
+        with self._cond:
+            while not self._closed:
+                if self._armed_at is None:
+                    self._cond.wait()
+                    continue
+                left = self._armed_at + self.limit_s - time.monotonic()
+                if left > 0:
+                    self._cond.wait(left)
+                    continue
+                message = self.on_expire(time.monotonic() - self._armed_at)
+                print(f"error: {message}", file=sys.stderr, flush=True)
+                sys.stdout.flush()
+                os._exit(EXIT_PEER_LOST)
+
+
 DATA_SERVICE_JOB = "ff3d_train"  # trainers sharing a tf.data service job read disjoint batches of one stream
 
 
@@ -80,7 +313,7 @@ def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, s
     every pair once per epoch) and batches arrive in the order workers finish them: training resumes from its
     checkpoint at the same step with the same weights, but the data order is not replayed.
     """
-    ds = pairs.pair_dataset(files, cfg)
+    ds = pairs.pair_dataset(files, cfg, training_labels=True)  # data.labels: the human labels or pseudo-labels
     if shard is not None and not data_service_address:
         ds = ds.shard(*shard)
     if cfg.data.cache_decoded:
@@ -117,12 +350,15 @@ class Trainer:
                  strategy: tf.distribute.Strategy | None = None, log_fn=print, data_service_address: str | None = None):
         self.cfg, self.model_dir = cfg, model_dir
         self.train_files, self.val_files = list(train_files), list(val_files)
-        self.strategy = strategy or make_strategy()
+        self.strategy = strategy or make_strategy(cfg.train.peer_timeout_s, cfg.train.peer_join_timeout_s)
+        self._cluster = _cluster_tasks(self.strategy)  # None for one process
         self.data_service_address = data_service_address
         self._decode_options = pairs.decode_options(cfg)  # how a bad input record is re-read to name it
         self.is_chief, self._write_dir = _chief_and_write_dir(self.strategy, model_dir)
         self.log = log_fn if self.is_chief else (lambda s: log_fn(f"[worker] {s}"))
         self._stop_signal = None
+        self._last_saved_step = None
+        self._steps_done = 0  # the last step this process finished (the watchdog's message)
         keras.utils.set_random_seed(cfg.train.seed)  # same initial weights for the same seed (reproducible runs)
         with self.strategy.scope():
             self.model = build_model(cfg)
@@ -163,16 +399,39 @@ class Trainer:
         global batch's loss. A non-finite step changes no weight, BatchNorm statistic or optimizer slot (it is
         counted in `nonfinite_total` / `nonfinite_in_row`); `global_step` counts every step."""
         result = self.strategy.run(self._replica_step, args=(next(iterator),))
+        result = tf.nest.map_structure(lambda x: self.strategy.experimental_local_results(x)[0], result)
+        self._assign_step_result(result)
+        return result.loss
+
+    def _assign_step_result(self, result: step_lib.StepResult) -> None:
         # Every replica computed the same new state from the reduced loss and gradients: replica 0's is assigned to
         # every copy (cross-replica context: each variable's assign updates all of its mirrored copies).
-        result = tf.nest.map_structure(lambda x: self.strategy.experimental_local_results(x)[0], result)
         for var, value in zip(tf.nest.flatten(self._state_variables()), tf.nest.flatten(result.state)):
             var.assign(value)
         skipped = tf.cast(tf.logical_not(result.finite), tf.int64)
         self.nonfinite_total.assign_add(skipped)
         self.nonfinite_in_row.assign((self.nonfinite_in_row + 1) * skipped)  # 0 after a finite step
         self.global_step.assign_add(1)
-        return result.loss
+
+    def _replica_stop_requests(self, stop_requested):
+        # Summed over the job: each worker counts once (its first local replica), so the sum is the bitmask of the
+        # workers that asked to stop. ReduceOp has no MAX.
+        ctx = tf.distribute.get_replica_context()
+        local = len(self.strategy.extended.worker_devices)
+        first_local = tf.equal(tf.math.floormod(ctx.replica_id_in_sync_group, local), 0)
+        return ctx.all_reduce(tf.distribute.ReduceOp.SUM,
+                              tf.where(first_local, stop_requested, tf.zeros_like(stop_requested)))
+
+    @tf.function
+    def _step_and_stop(self, iterator, stop_requested):
+        """`step` plus the job-wide stop request (multi-worker): `stop_requested` (float64) is this worker's (0:
+        none, else 2 ** its task number) and the returned sum over the workers, all-reduced inside the same step, is
+        the bitmask of those that asked: every worker learns of a preemption at the same step."""
+        result = self.strategy.run(self._replica_step, args=(next(iterator),))
+        stop_by = self.strategy.run(self._replica_stop_requests, args=(stop_requested,))
+        result = tf.nest.map_structure(lambda x: self.strategy.experimental_local_results(x)[0], result)
+        self._assign_step_result(result)
+        return result.loss, self.strategy.experimental_local_results(stop_by)[0]
 
     # -- loop --------------------------------------------------------------------------------------------------
     def _install_signal_handlers(self):
@@ -230,7 +489,7 @@ class Trainer:
         """Final checkpoint (unless this step has one), history, and the non-chief's temporary directory removed."""
         step = int(self.global_step.numpy())
         if self.manager.latest_checkpoint is None or not self.manager.latest_checkpoint.endswith(f"-{step}"):
-            self.manager.save(checkpoint_number=step)
+            self._save(step)
         self.log(f"finished {step - start_step} steps in {time.time() - t_start:.1f} s; weights sha256 "
                  f"{weights_fingerprint(self.model)}")
         if self.is_chief:
@@ -243,31 +502,92 @@ class Trainer:
         if not self.is_chief and tf.io.gfile.exists(self._write_dir):
             tf.io.gfile.rmtree(self._write_dir)
 
+    def _save(self, step: int) -> str:
+        """A checkpoint of the finished `step` (once per step)."""
+        if self._last_saved_step != step:
+            self.manager.save(checkpoint_number=step)
+            self._last_saved_step = step
+        return self.manager.latest_checkpoint
+
+    def _peer_lost(self, err: BaseException | None, waited_s: float, step: int) -> PeerLostError:
+        me, tasks = self._cluster
+        reason = _short_reason(err) if err is not None else f"step {step + 1} did not finish within " \
+                                                               f"train.peer_timeout_s={self.cfg.train.peer_timeout_s:g} s"
+        return lost_peer_error(lost_task(getattr(err, "message", "") or "", me, tasks), step, reason, waited_s,
+                               self.checkpoint_dir)
+
+    def _stop_request(self) -> float:
+        """This worker's stop request for the next step: 0, or 2 ** its task number after SIGTERM/SIGINT (1 beyond
+        the 52 tasks a float64 bitmask can name)."""
+        if self._stop_signal is None:
+            return 0.0
+        me, tasks = self._cluster
+        number = [f"{job} {i}" for job, i, _ in tasks].index(me)
+        return float(2 ** number) if len(tasks) <= 52 else 1.0
+
+    def _stopped_by(self, mask: int) -> str:
+        me, tasks = self._cluster
+        if len(tasks) > 52:
+            return "a worker"
+        return ", ".join(f"{job} {i}" for k, (job, i, _) in enumerate(tasks) if mask >> k & 1) or "a worker"
+
+    def _run_step(self, iterator, watchdog, step: int) -> tuple[float, str | None]:
+        """One step; returns (loss, the task whose stop request ends the job after this step, or None).
+
+        Multi-worker: an error a lost peer causes becomes `PeerLostError`; nothing of the failed step is saved."""
+        if self._cluster is None:
+            with pairs.input_errors_named(self.train_files, self._decode_options):  # stops before any update
+                loss = self.step(iterator)
+            return float(loss.numpy()), None
+        t0 = time.monotonic()
+        if watchdog is not None:
+            watchdog.arm()
+        try:
+            with pairs.input_errors_named(self.train_files, self._decode_options):
+                loss, stop_by = self._step_and_stop(iterator, tf.constant(self._stop_request(), tf.float64))
+                loss_value, stop_by = float(loss.numpy()), int(round(float(stop_by.numpy())))
+        except tf.errors.OpError as e:
+            if not is_peer_error(e):
+                raise
+            raise self._peer_lost(e, time.monotonic() - t0, step) from None
+        finally:
+            if watchdog is not None:
+                watchdog.disarm()
+        return loss_value, (self._stopped_by(stop_by) if stop_by else None)
+
     def train(self, num_steps: int | None = None) -> dict:
         """Runs (or resumes) training to `num_steps`: restore, input, steps with logging, checkpoints and the
-        periodic evaluation, a checkpoint on SIGINT/SIGTERM."""
+        periodic evaluation, a checkpoint on SIGINT/SIGTERM.
+
+        One process: a signal saves the finished step and returns `interrupted`. Several workers: a signal to any of
+        them stops all after the same step, each saves it and returns `preempted`; a lost worker raises
+        `PeerLostError` on the others (see the module docstring)."""
         cfg = self.cfg
         num_steps = cfg.train.num_steps if num_steps is None else num_steps
-        self.restore_latest()  # before writing anything: a checkpoint of another config stops the run here
-        if self.is_chief:
-            tf.io.gfile.makedirs(self.model_dir)  # local or gs:// alike
-            cfg.save(os.path.join(self.model_dir, "config.yaml"))
-        start_step = int(self.global_step.numpy())
-        if start_step >= num_steps:
-            self.log(f"already at step {start_step} >= {num_steps}; nothing to do")
-            self.remove_worker_dir()
-            return {"step": start_step}
-        iterator = self._input_iterator(start_step)
-        writer = (tf.summary.create_file_writer(os.path.join(self.model_dir, "train")) if self.is_chief
-                  else tf.summary.create_noop_writer())
-        previous = self._install_signal_handlers()
-        t_start, last_log_t, last_log_step = time.time(), time.time(), start_step
-        loss_value, history = float("nan"), []
+        previous = self._install_signal_handlers()  # early: a preemption during start-up stops after the first step
+        watchdog = None
         try:
+            self.restore_latest()  # before writing anything: a checkpoint of another config stops the run here
+            if self.is_chief:
+                tf.io.gfile.makedirs(self.model_dir)  # local or gs:// alike
+                cfg.save(os.path.join(self.model_dir, "config.yaml"))
+            start_step = self._steps_done = int(self.global_step.numpy())
+            if start_step >= num_steps:
+                self.log(f"already at step {start_step} >= {num_steps}; nothing to do")
+                self.remove_worker_dir()
+                return {"step": start_step}
+            iterator = self._input_iterator(start_step)
+            writer = (tf.summary.create_file_writer(os.path.join(self.model_dir, "train")) if self.is_chief
+                      else tf.summary.create_noop_writer())
+            t_start, last_log_t, last_log_step = time.time(), time.time(), start_step
+            loss_value, history = float("nan"), []
             while int(self.global_step.numpy()) < num_steps:
-                with pairs.input_errors_named(self.train_files, self._decode_options):  # stops before any update
-                    loss = self.step(iterator)
-                step, loss_value = int(self.global_step.numpy()), float(loss.numpy())
+                step_before = int(self.global_step.numpy())
+                loss_value, stop_by = self._run_step(iterator, watchdog, step_before)
+                if self._cluster is not None and watchdog is None:  # from the second step on: the first compiles
+                    watchdog = _Watchdog(cfg.train.peer_timeout_s,
+                                             lambda waited: str(self._peer_lost(None, waited, self._steps_done)))
+                step = self._steps_done = int(self.global_step.numpy())
                 self._check_nonfinite(step)
                 if step % cfg.train.log_every_steps == 0 or step == num_steps:
                     now = time.time()
@@ -276,19 +596,34 @@ class Trainer:
                     last_log_t, last_log_step = now, step
                     history.append((step, loss_value))
                 if step % cfg.train.checkpoint_every_steps == 0:
-                    self.manager.save(checkpoint_number=step)
+                    self._save(step)
                 if (self.is_chief and self.val_files and cfg.train.eval_every_steps
                         and step % cfg.train.eval_every_steps == 0):
                     self.evaluate_subset(step)
-                if self._stop_signal is not None:
-                    path = self.manager.save(checkpoint_number=step)
+                if stop_by is not None and step < num_steps:
+                    path = self._save(step)
+                    self.log(f"preempted at step {step} (signal to {stop_by}); every worker saved step {step}"
+                             + (f", checkpoint {path}" if self.is_chief else "")
+                             + f"; exit status {EXIT_PREEMPTED}: run the same commands again to resume")
+                    self.remove_worker_dir()
+                    writer.flush()
+                    return {"step": step, "loss": loss_value, "interrupted": True, "preempted": True,
+                            "stopped_by": stop_by}
+                if self._cluster is None and self._stop_signal is not None:
+                    path = self._save(step)
                     self.log(f"interrupted by signal {self._stop_signal} at step {step}; checkpoint {path}; "
                              f"run the same command again to resume")
                     return {"step": step, "loss": loss_value, "interrupted": True}
+            self._finish(start_step, t_start, history)
+        except tf.errors.OpError as e:  # outside a step (restore, input, a checkpoint): no step is in flight
+            if self._cluster is None or not is_peer_error(e):
+                raise
+            raise self._peer_lost(e, 0.0, self._steps_done) from None
         finally:
+            if watchdog is not None:
+                watchdog.close()
             for s, h in previous.items():
                 signal.signal(s, h)
-        self._finish(start_step, t_start, history)
         return {"step": int(self.global_step.numpy()), "loss": loss_value, "interrupted": False}
 
     def evaluate_subset(self, step: int) -> dict:

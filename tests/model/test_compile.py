@@ -50,6 +50,9 @@ def test_config_switch_and_auto(tiny_config, caplog):
         model = build_model(tiny_config)
     assert model.compile_mode == "hybrid"  # these tests run on CPU
     assert "model.compile=auto -> hybrid" in caplog.text
+    # Precision is resolved (and logged) for the resolved mode: float32 unless asked (tests/model/test_precision.py).
+    assert "model.mixed_precision=false -> float32 (as set; everything in float32)" in caplog.text
+    assert model.conv_dtype == "float32"
     assert replace_config(tiny_config, {"model.compile": "xla"}).model.jit_compile
     with pytest.raises(ValueError, match="resolve 'auto'"):
         fastflow3d.FastFlow3D(**fastflow3d.model_kwargs(tiny_config), compile_mode="auto")

@@ -53,6 +53,39 @@ def test_adam_update_equals_keras_adam(tiny_config, schedule):
     assert int(state.iterations) == 3
 
 
+def _numpy_adam(w, g, m, v, t, lr, b1, b2, eps):
+    """Adam (Kingma and Ba, Algorithm 1) in float64 with Keras' placement of epsilon (outside the bias correction of
+    v): m_t = b1 m + (1 - b1) g, v_t = b2 v + (1 - b2) g^2, w -= lr sqrt(1 - b2^t) / (1 - b1^t) m_t / (sqrt(v_t) + eps)."""
+    m = b1 * m + (1 - b1) * g
+    v = b2 * v + (1 - b2) * g * g
+    return w - lr * np.sqrt(1 - b2 ** t) / (1 - b1 ** t) * m / (np.sqrt(v) + eps), m, v
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_adam_apply_equals_numpy_adam(compiled):
+    """Five updates of three tensors, starting at step 7 with non-zero slots: the per-tensor Adam against NumPy;
+    compiled: inside one XLA program, with the step and learning rate as tensors."""
+    rng = np.random.default_rng(3)
+    lr, b1, b2, eps = 3e-3, 0.85, 0.99, 1e-6
+    w = [rng.standard_normal(s) for s in SHAPES]
+    w_start = [a.copy() for a in w]
+    m = [0.1 * rng.standard_normal(s) for s in SHAPES]
+    v = [0.01 * np.abs(rng.standard_normal(s)) for s in SHAPES]
+    params, slots_m, slots_v = ([tf.constant(a, tf.float32) for a in arrays] for arrays in (w, m, v))
+    apply = step_lib.adam_apply
+    if compiled:
+        apply = tf.function(step_lib.adam_apply, jit_compile=True)
+    for k in range(5):
+        g = [rng.standard_normal(s) for s in SHAPES]
+        params, slots_m, slots_v = apply(params, [tf.constant(a, tf.float32) for a in g], slots_m, slots_v,
+                                         tf.constant(7 + k), tf.constant(lr) if compiled else lr, b1, b2, eps)
+        w, m, v = map(list, zip(*(_numpy_adam(*x, t=8 + k, lr=lr, b1=b1, b2=b2, eps=eps) for x in zip(w, g, m, v))))
+    for got, want in zip(params + slots_m + slots_v, w + m + v):
+        np.testing.assert_allclose(np.asarray(got), want, rtol=2e-5, atol=1e-7)
+    moved = max(np.abs(a - b).max() for a, b in zip(w, w_start))
+    assert moved > 1e-3, moved  # the updates moved the weights far beyond the comparison's tolerance
+
+
 def _fixed_loss_and_grads(loss, grads, new_bn_statistics):
     return lambda weights, bn_statistics, batch: (tf.constant(loss), grads, new_bn_statistics)
 

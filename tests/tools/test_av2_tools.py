@@ -7,6 +7,7 @@ import sys
 import zipfile
 
 import numpy as np
+import pytest
 import pyarrow.feather as feather
 
 from conftest import AV2_LOG, ROOT, TINY_OVERRIDES
@@ -67,3 +68,22 @@ def test_eval_protocol_av2_with_a_checkpoint(tiny_segment, tmp_path):
     result = json.loads((tmp_path / "eval" / "metrics_av2.json").read_text())
     assert result["zero_flow"]["three_way/fg_dynamic_epe_m"] > 0.3
     assert result["model"]["num_points"] == result["zero_flow"]["num_points"] > 50_000
+
+
+@pytest.mark.slow
+def test_a_short_training_on_synthetic_av2_logs_beats_zero_flow(tmp_path):
+    """tools/make_synthetic_data.py --format av2 -> write_pair_records -> train.py -> eval.py --protocol av2."""
+    cpu = ["--config", "configs/synthetic_cpu.yaml", "--set", "data.point_bucket_base=8192"]
+    for split, logs, seed in (("train", "3", "0"), ("val", "1", "7")):
+        _run("tools/make_synthetic_data.py", "--format", "av2", "--out_dir", str(tmp_path / "logs"), "--num_logs",
+             logs, "--sweeps_per_log", "8", "--split", split, "--seed", seed)
+        _run("tools/write_pair_records.py", "--source", "av2", "--input", str(tmp_path / "logs" / split),
+             "--out_dir", str(tmp_path / split), *cpu)
+    records = ["--set", "data.source=pair_records"]
+    _run("tools/train.py", *cpu, *records, "--set", "train.num_steps=200", "--set", "train.eval_every_steps=1000",
+         "--data_dir", str(tmp_path / "train"), "--model_dir", str(tmp_path / "model"))
+    _run("tools/eval.py", "--protocol", "av2", *cpu, *records, "--data_dir", str(tmp_path / "val"),
+         "--checkpoint", str(tmp_path / "model"), "--out_dir", str(tmp_path / "eval"))
+    r = json.loads((tmp_path / "eval" / "metrics_av2.json").read_text())
+    assert r["model"]["three_way/fg_dynamic_epe_m"] < 0.9 * r["zero_flow"]["three_way/fg_dynamic_epe_m"]
+    assert r["paper_model"]["vehicle/moving/mean_l2_mps"] < 0.9 * r["paper_zero_flow"]["vehicle/moving/mean_l2_mps"]

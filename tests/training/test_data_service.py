@@ -1,7 +1,13 @@
-"""Training input served by tf.data service: an in-process dispatcher and two workers; the trainer learns from it."""
+"""Training input served by tf.data service: an in-process dispatcher and two workers; the trainer learns from it.
+Faults: a killed service worker (a process) does not stop training and a new one is given work; a killed
+fault-tolerant dispatcher restarted on its port and work dir lets training finish."""
 import os
+import signal
+import socket
 import subprocess
 import sys
+import threading
+import time
 
 import pytest
 import tensorflow as tf
@@ -72,3 +78,119 @@ def test_service_roles_as_processes(tmp_path):
             if p is not None:
                 p.terminate()
                 p.wait(timeout=30)
+
+
+def _service_process(*args):
+    proc = subprocess.Popen([sys.executable, "tools/data_service.py", *args], cwd=ROOT,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True)
+    lines = []
+    threading.Thread(target=lambda: lines.extend((time.monotonic(), ln) for ln in proc.stdout), daemon=True).start()
+    deadline = time.monotonic() + 300
+    while not any("serving on port" in ln for _, ln in lines):
+        assert proc.poll() is None and time.monotonic() < deadline, f"{args} did not start: {lines}"
+        time.sleep(0.05)
+    return proc, lines
+
+
+def _fault_config(tiny_config):
+    return replace_config(tiny_config, {"train.global_batch_size": 1, "train.log_every_steps": 1,
+                                        "train.eval_every_steps": 0, "train.checkpoint_every_steps": 1000,
+                                        "model.compile": "none"})
+
+
+def _on_step(actions, steps_at):
+    """A log_fn that records when each step ended and runs `actions[step]()` once that step is logged."""
+    def log(line):
+        if line.startswith("step "):
+            step = int(line.split()[1].split("/")[0])
+            steps_at.append((time.monotonic(), step))
+            if step in actions:
+                actions.pop(step)()
+    return log
+
+
+@pytest.mark.slow
+def test_a_killed_service_worker_does_not_stop_training_and_a_new_one_gets_work(tiny_segment, tiny_config,
+                                                                               tmp_path):
+    cfg = _fault_config(tiny_config)
+    dispatcher = start_dispatcher()
+    staying = start_worker(dispatcher.target)
+    victim, _ = _service_process("--worker", "--dispatcher_address", f"localhost:{dispatcher.port}")
+    joined = []
+    try:
+        deadline = time.monotonic() + 60
+        while dispatcher.server._num_workers() < 2:  # noqa: SLF001 - the dispatcher's own count
+            assert time.monotonic() < deadline, "the worker process never registered"
+            time.sleep(0.1)
+        steps_at = []
+        actions = {3: lambda: (victim.send_signal(signal.SIGKILL), victim.wait()),
+                   6: lambda: joined.append(start_worker(dispatcher.target))}
+        trainer = Trainer(cfg, str(tmp_path / "m"), [tiny_segment], strategy=tf.distribute.OneDeviceStrategy(
+            "/cpu:0"), log_fn=_on_step(actions, steps_at), data_service_address=dispatcher.target)
+        out = trainer.train(40)
+        assert out["step"] == 40 and not actions, (out, actions)
+        assert victim.returncode == -signal.SIGKILL
+        # The replacement registered and the dispatcher gave it a task of the running job.
+        assert joined[0].server._num_tasks() >= 1  # noqa: SLF001
+    finally:
+        for server in joined + [staying, dispatcher]:
+            server.stop()
+        if victim.poll() is None:
+            victim.kill()
+
+
+def _port():
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+@pytest.mark.slow
+def test_a_restarted_fault_tolerant_dispatcher_lets_training_finish(tiny_segment, tiny_config, tmp_path):
+    """The dispatcher (a process, --work_dir) is SIGKILLed after step 3 and started again on its port and work dir;
+    the trainer needs it again (dynamic sharding: a worker asks it for every next file), so steps after the
+    restart show that the job went on."""
+    cfg = _fault_config(tiny_config)
+    port, work_dir = _port(), str(tmp_path / "dispatcher")
+    first, _ = _service_process("--dispatcher", "--port", str(port), "--work_dir", work_dir)
+    workers = [start_worker(f"localhost:{port}") for _ in range(2)]
+    restarted = {}
+
+    def restart():
+        first.send_signal(signal.SIGKILL)
+        first.wait()
+        restarted["killed_at"] = time.monotonic()
+        restarted["proc"] = proc = subprocess.Popen(
+            [sys.executable, "tools/data_service.py", "--dispatcher", "--port", str(port), "--work_dir", work_dir],
+            cwd=ROOT, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+            text=True)
+        restarted["lines"] = lines = []
+        threading.Thread(target=lambda: lines.extend((time.monotonic(), ln) for ln in proc.stdout),
+                         daemon=True).start()
+
+    try:
+        steps_at = []
+        trainer = Trainer(cfg, str(tmp_path / "m"), [tiny_segment], strategy=tf.distribute.OneDeviceStrategy(
+            "/cpu:0"), log_fn=_on_step({3: restart}, steps_at), data_service_address=f"grpc://localhost:{port}")
+        out = trainer.train(40)
+        assert out["step"] == 40
+        serving = [t for t, ln in restarted["lines"] if "dispatcher serving on port" in ln]
+        assert serving, restarted["lines"]
+        killed_at = restarted["killed_at"]
+        before = [step for t, step in steps_at if killed_at < t <= serving[0]]
+        after = [step for t, step in steps_at if t > serving[0]]
+        times = [killed_at] + [t for t, _ in steps_at if t > killed_at]
+        print(f"dispatcher down {serving[0] - killed_at:.1f} s; {len(before)} steps meanwhile (buffered input), "
+              f"{len(after)} after its restart; longest stall {max(b - a for a, b in zip(times, times[1:])):.1f} s")
+        assert after and after[-1] == 40  # the job went on with the restarted dispatcher
+        assert os.listdir(work_dir)  # its journal
+    finally:
+        for server in workers:
+            server.stop()
+        for proc in (first, restarted.get("proc")):
+            if proc is not None and proc.poll() is None:
+                proc.terminate()
+                proc.wait(30)
