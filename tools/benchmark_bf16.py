@@ -140,7 +140,9 @@ def convolution_section(runs: int) -> dict:
     wall = json.loads(next(line for line in out.splitlines() if line.startswith("WALL_MS "))[len("WALL_MS "):])
     # onednn_verbose,v1,primitive,exec,cpu,convolution,<implementation>,<prop>,<src/wei/dst descriptors>,...,<ms>
     kernels = {}
-    for line in out.splitlines():
+    lines = out.splitlines()
+    single = lines[:next(i for i, line in enumerate(lines) if line.startswith("WALL_MS "))]  # not the dense stages
+    for line in single:
         fields = line.split(",")
         if len(fields) > 8 and fields[3:6] == ["exec", "cpu", "convolution"]:
             dtype = re.search(r"src:(\w+):", line).group(1)

@@ -105,10 +105,13 @@ def cpu_bf16_support(cpuinfo: str | None = None) -> tuple[str, tuple[str, ...]]:
 def bf16_convolutions_faster(vendor: str, flags: tuple[str, ...]) -> tuple[bool, str]:
     """(whether oneDNN's bfloat16 convolutions are expected to beat float32 on this CPU, why).
 
-    amx_bf16: AMX tiles (TDPBF16PS). AMD with avx512_bf16 (Zen 4 and later): measured 1.9x faster at 32K points and
-    1.35x at 1M than float32 (issue 20, paper config, mode hybrid). Intel with avx512_bf16 and no AMX: oneDNN's
-    brg_conv_fwd:avx512_core_bf16 measured 1.6x slower than its float32 brg_conv_fwd:avx512_core on a 3x3 64 -> 64
-    convolution of a 2 x 512 x 512 grid, and the paper-config forward 2.2x slower (benchmarks/bf16_cpu.json)."""
+    amx_bf16: AMX tiles (TDPBF16PS; not measured in this project). AMD with avx512_bf16 (Zen 4 and later): the
+    paper-config forward measured 1.9x faster at 32K points and 1.35x at 1M than float32 (issue 20, mode hybrid,
+    the point encoder then in bfloat16 too; not measured again since).
+    Intel with avx512_bf16 and no AMX (an Emerald Rapids VM that hides AMX): every oneDNN bfloat16 convolution
+    kernel measured slower than its float32 one (benchmarks/bf16_cpu.json: a 3x3 64 -> 64 convolution of a
+    2 x 512 x 512 grid 1.7x slower, brg_conv_fwd:avx512_core_bf16 against brg_conv_fwd:avx512_core; the dense
+    stages' gradient 2.5x; the paper-config forward and training step slower too)."""
     if "amx_bf16" in flags:
         return True, "CPU has amx_bf16"
     if "avx512_bf16" in flags and vendor == "AuthenticAMD":
