@@ -6,17 +6,14 @@ import matplotlib
 import numpy as np
 import pytest
 
-from ff3d_tf import schema, viz3d
+from ff3d_tf import geometry, schema, viz3d
 
 RNG = np.random.default_rng(11)
 
 
 def _pose(yaw, t):
-    c, s = np.cos(yaw), np.sin(yaw)
-    m = np.eye(4)
-    m[:2, :2] = [[c, -s], [s, c]]
-    m[:3, 3] = t
-    return m
+    """4x4 vehicle -> world pose of a yaw rotation and a translation."""
+    return geometry.box_matrices_np(t, yaw)[0]
 
 
 def _pair(n0, n1):

@@ -38,6 +38,26 @@ def narrow_matmul(x, kernel):
     return y, grad
 
 
+def _chunking(total, static_total, chunk_size):
+    """(chunk, number of chunks) for `total` points (a tensor; `static_total` its value if known, else None): Python
+    ints when the count is static or `chunk_size >= ONE_CHUNK` makes it one chunk, tensors otherwise."""
+    if static_total is not None:
+        chunk = max(min(chunk_size, static_total), 1)
+        return chunk, max(-(-static_total // chunk), 1)
+    if chunk_size >= ONE_CHUNK:  # one chunk of every point, however many there are (see ONE_CHUNK)
+        return tf.maximum(total, 1), 1
+    chunk = tf.maximum(tf.minimum(chunk_size, total), 1)
+    return chunk, tf.maximum((total + chunk - 1) // chunk, 1)
+
+
+def _over_chunks(num_chunks, body, state):
+    """state = body(i, state) for each chunk i: inline for a static single chunk, else a tf.while_loop."""
+    if isinstance(num_chunks, int) and num_chunks == 1:
+        return body(0, state)
+    return tf.while_loop(lambda i, _: i < num_chunks, lambda i, s: (i + 1, body(i, s)), (tf.constant(0), state),
+                         maximum_iterations=num_chunks)[1]
+
+
 def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segments, chunk_size):
     """Segment sums of per-point values that `fn` computes `chunk_size` points at a time, and optionally per-point
     rows beside them; with a gradient that recomputes each chunk.
@@ -55,27 +75,14 @@ def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segme
     (unrolled, it reassociates the sums into extra grids). `chunk_size >= ONE_CHUNK` makes the count one chunk,
     static, at any point count.
     """
-    total, static_total = tf.shape(segment_ids)[0], segment_ids.shape[0]
-    if static_total is not None:
-        chunk = max(min(chunk_size, static_total), 1)
-        num_chunks = max(-(-static_total // chunk), 1)
-    elif chunk_size >= ONE_CHUNK:  # one chunk of every point, however many there are (see ONE_CHUNK)
-        chunk, num_chunks = tf.maximum(total, 1), 1
-    else:
-        chunk = tf.maximum(tf.minimum(chunk_size, total), 1)
-        num_chunks = tf.maximum((total + chunk - 1) // chunk, 1)
+    total = tf.shape(segment_ids)[0]
+    chunk, num_chunks = _chunking(total, segment_ids.shape[0], chunk_size)
 
     def to_chunks(t, fill):  # [P, ...] -> [K, chunk, ...]
         t = tf.pad(t, [[0, num_chunks * chunk - total]] + [[0, 0]] * (len(t.shape) - 1), constant_values=fill)
         return tf.reshape(t, tf.concat([[num_chunks, chunk], tf.shape(t)[1:]], 0))
 
     ids, valid = to_chunks(segment_ids, -1), to_chunks(point_valid, False)
-
-    def loop(body, state):  # state = body(i, state) for each chunk i
-        if isinstance(num_chunks, int) and num_chunks == 1:
-            return body(0, state)
-        return tf.while_loop(lambda i, _: i < num_chunks, lambda i, s: (i + 1, body(i, s)), (tf.constant(0), state),
-                             maximum_iterations=num_chunks)[1]
 
     @tf.custom_gradient
     def run(points, *weights):  # points [K, chunk, D]
@@ -93,7 +100,7 @@ def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segme
         # An empty chunk gives the outputs' shapes: zero sums to add the chunks to, and the rows' width.
         sums, rows = chunk_outputs(points[0][:0], valid[0][:0], ids[0][:0])
         rows = [] if rows is None else [tf.zeros([num_chunks, chunk, rows.shape[-1]], rows.dtype)]
-        state = loop(forward, [sums] + rows)
+        state = _over_chunks(num_chunks, forward, [sums] + rows)
 
         def grad(d_sums, d_rows=None):
             def backward(i, state):
@@ -113,7 +120,7 @@ def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segme
                 return (tf.tensor_scatter_nd_update(d_points, [[i]], d_chunk[None]),
                         [d + x for d, x in zip(d_weights, d_weights_chunk)])
 
-            d_points, d_weights = loop(backward, (tf.zeros_like(points), [tf.zeros_like(w) for w in weights]))
+            d_points, d_weights = _over_chunks(num_chunks, backward, (tf.zeros_like(points), [tf.zeros_like(w) for w in weights]))
             return [d_points] + d_weights
 
         return state, grad

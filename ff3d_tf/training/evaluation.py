@@ -34,6 +34,13 @@ def _compression(path: str) -> str:
     return "ZLIB" if pair_records.read_manifest(os.path.dirname(path)).compression == "zlib" else ""
 
 
+def _log_progress(done: int, total: int, t0: float, log_fn) -> None:
+    """Every 5 pairs and at the last: pairs done, rate and time left."""
+    if done % 5 == 0 or done == total:
+        rate = done / max(time.time() - t0, 1e-9)
+        log_fn(f"eval {done}/{total} pairs {rate:.2f} pairs/s ETA {max(total - done, 0) / max(rate, 1e-9):.0f}s")
+
+
 def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
              log_fn=print) -> tuple[dict, dict]:
     """(model metrics, zero-flow metrics) over every pair of `files` (points with a prediction only).
@@ -58,10 +65,7 @@ def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_
                 m.update_state(ex["flow_mps_t0"], flow, ex["class_id_t0"], point_valid=valid,
                                points_xyz=ex["points_xyz_t0"])
             done += 1
-            if done % 5 == 0 or done == total:
-                rate = done / max(time.time() - t0, 1e-9)
-                log_fn(f"eval {done}/{total} pairs {rate:.2f} pairs/s "
-                       f"ETA {max(total - done, 0) / max(rate, 1e-9):.0f}s")
+            _log_progress(done, total, t0, log_fn)
     if done == 0:
         raise ValueError(f"no frame pairs in {files}")
     return tuple({**full.result(), **{CROP_PREFIX + k: v for k, v in published_epe_keys(crop.result()).items()}}
@@ -105,10 +109,7 @@ def av2_challenge_examples(cfg: ExperimentConfig, files: list[str], predictor: P
             mask = metrics_av2.eval_mask(ex["points_xyz_t0"], ex["is_ground_t0"])
             yield ex, np.where(valid[:, None], np.asarray(flow_pred), 0.0), valid, mask
             done += 1
-            if done % 5 == 0 or done == total:
-                rate = done / max(time.time() - t0, 1e-9)
-                log_fn(f"eval {done}/{total} pairs {rate:.2f} pairs/s "
-                       f"ETA {max(total - done, 0) / max(rate, 1e-9):.0f}s")
+            _log_progress(done, total, t0, log_fn)
     if done == 0:
         raise ValueError(f"no pairs in {files}")
 

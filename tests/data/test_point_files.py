@@ -326,11 +326,8 @@ def test_bad_npy_npz_bin_files(tmp_path):
 # --- poses ----------------------------------------------------------------------------------------------------------
 
 def _pose(yaw, t):
-    c, s = np.cos(yaw), np.sin(yaw)
-    m = np.eye(4)
-    m[:2, :2] = [[c, -s], [s, c]]
-    m[:3, 3] = t
-    return m
+    """4x4 vehicle -> world pose of a yaw rotation and a translation."""
+    return geometry.box_matrices_np(t, yaw)[0]
 
 
 def test_poses_text_and_npy(tmp_path):

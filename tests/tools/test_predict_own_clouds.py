@@ -9,16 +9,14 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, TINY_OVERRIDES
+from ff3d_tf import geometry
 
 RNG = np.random.default_rng(21)
 
 
 def _pose(yaw, t):
-    c, s = np.cos(yaw), np.sin(yaw)
-    m = np.eye(4)
-    m[:2, :2] = [[c, -s], [s, c]]
-    m[:3, 3] = t
-    return m
+    """4x4 vehicle -> world pose of a yaw rotation and a translation."""
+    return geometry.box_matrices_np(t, yaw)[0]
 
 
 @pytest.fixture(scope="module")
