@@ -6,7 +6,8 @@
   the tool names a configs/ file and the target of each tool it starts (a string naming `<tool>.py`).
 - tests/**/test_*.py: a `pytest_test` (bazel/pytest.bzl) per file, with `fast` / `slow` saying whether the file has
   tests not marked / marked `@pytest.mark.slow`; deps hold what it imports (other test modules included) and `data`
-  the configs, the in-tree Argoverse 2 sample and the tools that the file names. Other tests/**/*.py: a `py_library`.
+  the configs, the in-tree Argoverse 2 sample and the tools that the file names. Other tests/**/*.py: a `py_library`
+  with the same `data` (conftest's fixtures read the sample for every test that uses them).
 """
 from __future__ import annotations
 
@@ -194,6 +195,6 @@ class Tree:
                 fast, slow = speed_split(tree)
                 deps.discard("//tests:conftest")  # every pytest_test gets it
                 out.append(Expected(path, package, name, "pytest_test", deps, self.data_needs(tree), fast, slow))
-            else:
-                out.append(Expected(path, package, name, "py_library", deps))
+            else:  # a helper (conftest, fixtures): the data it names reaches every test that imports it
+                out.append(Expected(path, package, name, "py_library", deps, self.data_needs(tree)))
         return out
