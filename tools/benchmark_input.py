@@ -1,6 +1,7 @@
 """Training input in pairs/s per core: decoding WOD frames on the fly vs decode-once pair records. JSON out.
 
 python tools/benchmark_input.py --out benchmarks/input_cpu.json [--densities wod,synthetic] [--cores 1,2]
+python tools/benchmark_input.py --av2 --out benchmarks/input_cpu.json [--cores 1,2]   (merged in as key "av2")
 python tools/benchmark_input.py --official --data_dir D --out O   (graph reader vs the official frame_utils)
 
 For each density (synthetic WOD segments: `wod` ~177K points per frame over five lidars, first return, as WOD;
@@ -12,6 +13,18 @@ For each density (synthetic WOD segments: `wod` ~177K points per frame over five
   records  the same training input read from pair records (`tools/write_pair_records.py`), exact and compact.
 Disk: bytes per pair of each record kind, and the WOD training split's size at that rate (798 segments of ~198 pairs;
 Sun et al., CVPR 2020).
+
+--av2: where Argoverse 2 labels are computed, on synthetic AV2 logs (`ff3d_tf.data.synthetic_av2`, `--av2_points`
+per sweep: 100K as the sample log's 99,229 and 99,466 over two 32-beam lidars; the module's default, 6,000, is a test
+size), in the same pinned children:
+  labels_in_pipeline  labelling on the fly: `labels.av2.challenge_pair` per pair (both sweeps' feather files, poses,
+                      cuboids, box flow, categories, ground raster mask) in the trainer's tf.data map (py_function,
+                      parallel), as pairs/s; studies, shuffling and batching not included (they only lower it);
+  write_<precision>   the records job (`labels.av2.write_log_records`, one log per worker, `cores` workers), pairs/s
+                      and bytes per pair on disk;
+  records_<precision> the trainer's `training_dataset` reading those records (as `records` above), after untimed
+                      warm-up readings (a process's first ones run up to 2-3x slower: fresh memory).
+The result goes into `--out` as its key "av2"; the file's other keys are kept.
 """
 import argparse
 import json
@@ -26,6 +39,7 @@ from ff3d_tf import bench
 
 DENSITY_LIDAR_SCALE = {"wod": 0.715, "synthetic": 1.0}  # range-image scale; points grow with its square
 WOD_TRAIN_PAIRS = 798 * 198
+AV2_TRAIN_PAIRS = 700 * 149  # 700 training logs of 15 s at 10 Hz (Wilson et al., NeurIPS Datasets and Benchmarks 2021)
 
 
 def _args(argv=None):
@@ -38,6 +52,10 @@ def _args(argv=None):
     p.add_argument("--out", default="benchmarks/input_cpu.json")
     p.add_argument("--official", action="store_true", help="graph reader vs official frame_utils (needs --data_dir)")
     p.add_argument("--data_dir", default=None)
+    p.add_argument("--av2", action="store_true", help="Argoverse 2: labels in the input pipeline vs pair records")
+    p.add_argument("--av2_logs", type=int, default=4)
+    p.add_argument("--av2_sweeps", type=int, default=5, help="sweeps per synthetic AV2 log")
+    p.add_argument("--av2_points", type=int, default=100_000, help="points per synthetic AV2 sweep")
     p.add_argument("--frames", type=int, default=10, help="--official: frames read")
     p.add_argument("--child", default="", help=argparse.SUPPRESS)  # internal: "<cores>:<json args>"
     return p.parse_args(argv)
@@ -51,15 +69,23 @@ def _rate(ds, count: int, per_item: int = 1) -> dict:
     return {"per_s": count * per_item / seconds, "timed": count * per_item, "first_s": first_s}
 
 
+def _options(cores: int):
+    import tensorflow as tf
+    options = tf.data.Options()
+    options.threading.private_threadpool_size = cores
+    options.threading.max_intra_op_parallelism = 1
+    return options
+
+
 def _child(args, cores: int, job: dict) -> dict:
     import tensorflow as tf
     from ff3d_tf.config import replace_config
     from ff3d_tf.data import pairs, wod_decode
     from ff3d_tf.training.trainer import training_dataset
+    if "av2_logs" in job:
+        return _child_av2(args, cores, job)
     cfg = _common.load(args)
-    options = tf.data.Options()
-    options.threading.private_threadpool_size = cores
-    options.threading.max_intra_op_parallelism = 1
+    options = _options(cores)
     batch = cfg.train.global_batch_size
     out = {}
     segments = job["segments"]
@@ -78,6 +104,77 @@ def _child(args, cores: int, job: dict) -> dict:
         out[f"records_{kind}"] = _rate(training_dataset(files, rcfg, batch).with_options(options), args.batches,
                                        batch)
     return out
+
+
+def _child_av2(args, cores: int, job: dict) -> dict:
+    """`--av2` readings on `cores` cores: labelling in the input pipeline, the records job, reading its records."""
+    import glob
+    from concurrent.futures import ThreadPoolExecutor
+    import tensorflow as tf
+    from ff3d_tf.config import replace_config
+    from ff3d_tf.data import pair_records
+    from ff3d_tf.labels import av2
+    from ff3d_tf.training.trainer import training_dataset
+    cfg = _common.load(args)
+    options, batch, logs = _options(cores), cfg.train.global_batch_size, job["av2_logs"]
+    tasks = [(log, i) for log in logs for i in range(job["sweeps"] - 1)]
+
+    for task in tasks[:2]:
+        av2.challenge_pair(*task, cfg)  # warm-up (first eager calls), untimed
+    out, files = {}, {}
+    for precision in ("exact", "compact"):
+        out_dir = os.path.join(job["out_dir"], f"{cores}_cores_{precision}")
+        manifest = av2.records_manifest(cfg, precision)
+        pair_records.write_manifest(out_dir, manifest)
+        with ThreadPoolExecutor(cores) as pool:  # a Beam worker per core, one log per element
+            counts, seconds = bench.elapsed(
+                lambda: list(pool.map(lambda log: av2.write_log_records(log, out_dir, cfg, manifest), logs)))
+        n_pairs, n_bytes = sum(c["pairs"] for c in counts), sum(c["bytes"] for c in counts)
+        out[f"write_{precision}"] = {"per_s": n_pairs / seconds, "timed": n_pairs, "bytes_per_pair": n_bytes / n_pairs,
+                                     "av2_train_split_tb": n_bytes / n_pairs * AV2_TRAIN_PAIRS / 1e12}
+        files[precision] = sorted(glob.glob(os.path.join(out_dir, "*" + pair_records.FILE_SUFFIX)))
+    rcfg = replace_config(cfg, {"data.source": "pair_records"})
+    reading = lambda p: training_dataset(files[p], rcfg, batch).with_options(options)  # noqa: E731
+
+    def label(k):
+        return av2.challenge_pair(*tasks[int(k) % len(tasks)], cfg)["num_points_t0"]
+    labelled = tf.data.Dataset.range(2 ** 40).map(lambda k: tf.py_function(label, [k], tf.int32),
+                                                 num_parallel_calls=tf.data.AUTOTUNE)
+    out["labels_in_pipeline"] = _rate(labelled.with_options(options), job["pairs_timed"])
+    # Warm-up, untimed: a process's first readings of 100K-point pairs run up to 2-3x slower than its later ones
+    # (fresh memory: page faults until the allocator reuses it), which a long training does not see.
+    for precision in ("exact", "compact"):
+        _rate(reading(precision), 2, batch)
+    for precision in ("exact", "compact"):
+        out[f"records_{precision}"] = _rate(reading(precision), args.batches, batch)
+    return out
+
+
+def _av2(args, cores: list[int], argv) -> dict:
+    """The `--av2` part: synthetic AV2 logs, then `_child_av2` pinned to each core count."""
+    from ff3d_tf.data import argoverse2, synthetic_av2
+    cfg = _common.load(args)
+    result = {"command": " ".join(["python tools/benchmark_input.py"] + list(sys.argv[1:] if argv is None else argv)),
+              "config": args.config, "overrides": args.set, "batch_size": cfg.train.global_batch_size,
+              "cpus_available": len(os.sched_getaffinity(0)), "load_average_start": bench.load_average()}
+    with tempfile.TemporaryDirectory() as tmp:
+        logs = synthetic_av2.write_synthetic_split(tmp, args.av2_logs, "train", args.av2_sweeps, seed=17,
+                                                   points_per_sweep=args.av2_points, progress=lambda *a: None)
+        stamps = argoverse2.sweep_timestamps(logs[0])
+        result.update({"logs": len(logs), "sweeps_per_log": args.av2_sweeps, "pairs": len(logs) * (args.av2_sweeps - 1),
+                       "points_per_sweep": len(argoverse2.read_sweep(logs[0], stamps[0])["points_xyz"])})
+        job = {"av2_logs": logs, "sweeps": args.av2_sweeps, "pairs_timed": 2 * result["pairs"], "out_dir": tmp}
+        runs = {str(c): _in_child(args, c, job) for c in cores}
+    result["runs"] = runs
+    result["per_core_per_s"] = {c: {k: v["per_s"] / int(c) for k, v in r.items()} for c, r in runs.items()}
+    result["bytes_per_pair"] = {p: runs[str(cores[0])][f"write_{p}"]["bytes_per_pair"] for p in ("exact", "compact")}
+    result["records_over_labels_in_pipeline"] = {
+        c: {p: r[f"records_{p}"] / r["labels_in_pipeline"] for p in ("exact", "compact")}
+        for c, r in result["per_core_per_s"].items()}
+    result["load_average_end"] = bench.load_average()
+    print(json.dumps({k: result[k] for k in ("points_per_sweep", "per_core_per_s", "bytes_per_pair",
+                                             "records_over_labels_in_pipeline")}, indent=1), flush=True)
+    return result
 
 
 def _in_child(args, cores: int, job: dict) -> dict:
@@ -165,6 +262,13 @@ def main(argv=None):
         cores, job = args.child.split(":", 1)
         bench.pin_cores(int(cores))
         result = _child(args, int(cores), json.loads(job))
+    elif args.av2:
+        av2 = _av2(args, [int(c) for c in args.cores.split(",")], argv)
+        result = {}
+        if os.path.exists(args.out):
+            with open(args.out) as f:
+                result = json.load(f)
+        result["av2"] = av2
     elif args.official:
         if not args.data_dir:
             sys.exit("--official needs --data_dir")

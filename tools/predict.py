@@ -26,6 +26,7 @@ import tensorflow as tf
 from ff3d_tf import viz, viz3d
 from ff3d_tf.config import replace_config
 from ff3d_tf.data import pairs, point_files, waymo
+from ff3d_tf.data.point_file_errors import PointFileError
 from ff3d_tf.data.wod_errors import MissingFlowLabelsError
 from ff3d_tf.inference.predictor import load_predictor
 
@@ -195,7 +196,7 @@ def main():
             print(f"predicted pair {i}: {int(valid.sum())}/{len(valid)} points with a prediction", flush=True)
         if recording is not None:
             print(f"wrote {recording.close()} (open it with: rerun {args.rerun})", flush=True)
-    except (point_files.PointFileError, viz3d.Viz3dUnavailableError) as e:
+    except (PointFileError, viz3d.Viz3dUnavailableError) as e:
         sys.exit(f"error: {e}")
     print(f"wrote {n} frames to {args.out_dir}")
 

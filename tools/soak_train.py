@@ -26,7 +26,6 @@ import os
 import random
 import re
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -35,7 +34,8 @@ import time
 
 import _common
 
-from ff3d_tf.training.trainer import EXIT_PEER_LOST, EXIT_PREEMPTED
+from ff3d_tf.training import cluster
+from ff3d_tf.training.cluster import EXIT_PEER_LOST, EXIT_PREEMPTED
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # The tests' tiny model (tests/conftest.py TINY_OVERRIDES), no XLA (the fastest start), a checkpoint every 10 steps.
@@ -66,16 +66,6 @@ def _args(argv=None):
     p.add_argument("--work_dir", default="/tmp/ff3d_soak", help="data, model dirs and every process's log")
     p.add_argument("--out", default="benchmarks/soak_train.json", help="report (merged: one entry per mode)")
     return p.parse_args(argv)
-
-
-def _free_ports(n: int) -> list[int]:
-    socks = [socket.socket() for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 class Proc:
@@ -156,8 +146,8 @@ class Soak:
         os.makedirs(self.logs, exist_ok=True)
         self.data_dir = os.path.join(args.work_dir, "data")
         self.model_dir = os.path.join(args.work_dir, "model_service" if args.service else "model")
-        self.trainer_ports = _free_ports(2)
-        self.dispatcher_port = _free_ports(1)[0]
+        self.trainer_ports = cluster.free_loopback_ports(2)
+        self.dispatcher_port = cluster.free_loopback_ports(1)[0]
         self.dispatcher_dir = os.path.join(args.work_dir, "dispatcher")
         self.trainers: list[Proc] = []
         self.dispatcher: Proc | None = None
@@ -370,7 +360,8 @@ class Soak:
         print(f"[{self.now():7.1f} s] job stopped at step {final_step}; uninterrupted run of {final_step} steps",
               flush=True)
         ref_dir = os.path.join(args.work_dir, "reference")
-        reference = self.start_trainers(ref_dir, final_step, False, ports=_free_ports(2), tag="_reference")
+        reference = self.start_trainers(ref_dir, final_step, False, ports=cluster.free_loopback_ports(2),
+                                        tag="_reference")
         ref_codes = [p.finish(3600)[0] for p in reference]
         if ref_codes != [0, 0]:
             raise SystemExit(f"the uninterrupted run failed: exits {ref_codes}; logs in {self.logs}")

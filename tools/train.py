@@ -1,7 +1,8 @@
 """Train FastFlow3D: python tools/train.py --config configs/synthetic_cpu.yaml --data_dir D --model_dir M
 
 Several GPUs of one machine: nothing to add (MirroredStrategy). Several machines: set TF_CONFIG on each worker (see
-README, "Training on several machines"). Input on other machines: --data_service_address (tools/data_service.py).
+README, "Training on several GPUs and machines"). Input on other machines: --data_service_address
+(tools/data_service.py).
 
 Exit status: 0 done; 1 an error (a one-line message), or one process interrupted by SIGINT/SIGTERM (checkpoint
 written: run the same command again); 69 a multi-worker job lost a worker (restart every worker with the same
@@ -14,7 +15,8 @@ import sys
 import _common
 
 from ff3d_tf.data.pairs import list_segment_files
-from ff3d_tf.training.trainer import EXIT_PEER_LOST, EXIT_PREEMPTED, PeerLostError, Trainer
+from ff3d_tf.training.cluster import EXIT_PEER_LOST, EXIT_PREEMPTED, PeerLostError
+from ff3d_tf.training.trainer import Trainer
 
 
 def main():

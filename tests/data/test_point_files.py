@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from ff3d_tf import geometry, schema
+from ff3d_tf.data import pcd_ply
 from ff3d_tf.data import point_files as pf
-from ff3d_tf.data.point_files import PointFileError
+from ff3d_tf.data.point_file_errors import PointFileError
 
 RNG = np.random.default_rng(3)
 XYZ = RNG.uniform(-30, 30, (7, 3)).astype(np.float32)
@@ -71,28 +72,28 @@ def lzf_compress(data: bytes) -> bytes:
 def test_lzf_decompress_hand_made_streams():
     # "abc" as a literal run (control 2), then a back reference of length 5 from 3 bytes back, overlapping what it
     # writes: control (5 - 2) << 5 = 96, offset byte 3 - 1 = 2 -> "abc" + "abcab".
-    assert pf.lzf_decompress(bytes([2]) + b"abc" + bytes([96, 2]), 8) == b"abcabcab"
+    assert pcd_ply.lzf_decompress(bytes([2]) + b"abc" + bytes([96, 2]), 8) == b"abcabcab"
     # A long reference: length 20 = 7 + 11 + 2 (control 7 << 5 = 224, extra byte 11), 1 byte back: 21 x "z".
-    assert pf.lzf_decompress(bytes([0]) + b"z" + bytes([224, 11, 0]), 21) == b"z" * 21
+    assert pcd_ply.lzf_decompress(bytes([0]) + b"z" + bytes([224, 11, 0]), 21) == b"z" * 21
     # A distance above 255: (offset >> 8) in the control byte. 300 literal bytes, then 4 bytes from 300 back.
     lit = bytes(range(256)) + bytes(range(44))
     stream = b"".join(bytes([len(c) - 1]) + c for c in (lit[k:k + 32] for k in range(0, 300, 32)))
     offset = 300 - 1
     stream += bytes([(2 << 5) | (offset >> 8), offset & 0xFF])
-    assert pf.lzf_decompress(stream, 304) == lit + lit[:4]
+    assert pcd_ply.lzf_decompress(stream, 304) == lit + lit[:4]
     with pytest.raises(ValueError, match="before the start"):
-        pf.lzf_decompress(bytes([0]) + b"a" + bytes([96, 5]), 6)
+        pcd_ply.lzf_decompress(bytes([0]) + b"a" + bytes([96, 5]), 6)
     with pytest.raises(ValueError, match="runs past the input"):
-        pf.lzf_decompress(bytes([5]) + b"ab", 6)
+        pcd_ply.lzf_decompress(bytes([5]) + b"ab", 6)
     with pytest.raises(ValueError, match="decodes to 3 bytes, expected 4"):
-        pf.lzf_decompress(bytes([2]) + b"abc", 4)
+        pcd_ply.lzf_decompress(bytes([2]) + b"abc", 4)
 
 
 def test_lzf_round_trip_of_an_independent_compressor():
     data = b"".join([XYZ.tobytes(), bytes(200), b"ab" * 300, np.arange(500, dtype="<f4").tobytes(), XYZ.tobytes()])
     packed = lzf_compress(data)
     assert len(packed) < len(data)  # it did use back references
-    assert pf.lzf_decompress(packed, len(data)) == data
+    assert pcd_ply.lzf_decompress(packed, len(data)) == data
 
 
 # --- .npy, .npz, .bin ----------------------------------------------------------------------------------------------

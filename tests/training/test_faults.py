@@ -22,8 +22,8 @@ import tensorflow as tf
 from conftest import ROOT, TINY_OVERRIDES
 
 from ff3d_tf.config import ConfigError, replace_config
-from ff3d_tf.training import trainer as trainer_lib
-from ff3d_tf.training.trainer import EXIT_PEER_LOST, EXIT_PREEMPTED
+from ff3d_tf.training import cluster
+from ff3d_tf.training.cluster import EXIT_PEER_LOST, EXIT_PREEMPTED
 
 NUM_STEPS = 12
 PEER_TIMEOUT_S = 30
@@ -34,14 +34,6 @@ TASKS = [("worker", 0, "127.0.0.1:41001"), ("worker", 1, "127.0.0.1:41002")]
 
 
 # -- the pieces ---------------------------------------------------------------------------------------------------
-def _closed_port():
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 def test_lost_task_is_named_from_tensorflows_messages():
     # Captured from two-worker runs: SIGSTOP of worker 1 (the coordination service's heartbeat check), SIGKILL of
     # worker 0 (a refused connection), SIGSTOP of worker 0 (the service's host: only the RPC is named).
@@ -50,12 +42,12 @@ def test_lost_task_is_named_from_tensorflows_messages():
     refused = ("Collective ops is aborted by: failed to connect to all addresses; last error: UNKNOWN: "
                "ipv4:127.0.0.1:41001: Failed to connect to remote host: Connection refused")
     leader = "Collective ops is aborted by: Deadline Exceeded\n\nRPC: /tensorflow.CoordinationService/Heartbeat"
-    assert trainer_lib.lost_task(heartbeat, "worker 0", TASKS) == "worker 1 (127.0.0.1:41002)"
-    assert trainer_lib.lost_task(refused, "worker 1", TASKS) == "worker 0 (127.0.0.1:41001)"
-    assert trainer_lib.lost_task(leader, "worker 1", TASKS).startswith(
+    assert cluster.lost_task(heartbeat, "worker 0", TASKS) == "worker 1 (127.0.0.1:41002)"
+    assert cluster.lost_task(refused, "worker 1", TASKS) == "worker 0 (127.0.0.1:41001)"
+    assert cluster.lost_task(leader, "worker 1", TASKS).startswith(
         "worker 0 (127.0.0.1:41001, the coordination service's host")
     # The message names only this worker itself: it is never the lost one.
-    assert trainer_lib.lost_task("Error reported from /job:worker/replica:0/task:0", "worker 0", TASKS).startswith(
+    assert cluster.lost_task("Error reported from /job:worker/replica:0/task:0", "worker 0", TASKS).startswith(
         "worker 1 (127.0.0.1:41002")
 
 
@@ -64,49 +56,49 @@ def test_an_unnamed_lost_task_is_found_by_its_closed_port():
     listener.bind(("127.0.0.1", 0))
     listener.listen(1)
     alive = f"127.0.0.1:{listener.getsockname()[1]}"
-    dead = f"127.0.0.1:{_closed_port()}"
+    dead = f"127.0.0.1:{cluster.free_loopback_ports(1)[0]}"
     try:
         tasks = [("worker", 0, alive), ("worker", 1, alive), ("worker", 2, dead)]
-        assert trainer_lib.lost_task("Collective has timed out during execution.", "worker 0", tasks) == \
+        assert cluster.lost_task("Collective has timed out during execution.", "worker 0", tasks) == \
             f"worker 2 ({dead}, its port refuses connections)"
         # Every port open (a stopped or busy peer): the only other worker is named, with what it may be doing.
-        named = trainer_lib.lost_task("timed out", "worker 0", tasks[:2])
+        named = cluster.lost_task("timed out", "worker 0", tasks[:2])
         assert named.startswith(f"worker 1 ({alive}) (it did not answer")
     finally:
         listener.close()
 
 
 def test_peer_errors_are_told_from_other_errors():
-    assert trainer_lib.is_peer_error(tf.errors.UnavailableError(None, None, "failed to connect"))
-    assert trainer_lib.is_peer_error(tf.errors.DeadlineExceededError(None, None, "Collective has timed out"))
-    assert trainer_lib.is_peer_error(tf.errors.InternalError(None, None, "Collective ops is aborted by: x"))
-    assert not trainer_lib.is_peer_error(tf.errors.InvalidArgumentError(None, None, "Incompatible shapes"))
-    assert not trainer_lib.is_peer_error(tf.errors.ResourceExhaustedError(None, None, "OOM when allocating"))
-    assert not trainer_lib.is_peer_error(ValueError("not a TF error"))
+    assert cluster.is_peer_error(tf.errors.UnavailableError(None, None, "failed to connect"))
+    assert cluster.is_peer_error(tf.errors.DeadlineExceededError(None, None, "Collective has timed out"))
+    assert cluster.is_peer_error(tf.errors.InternalError(None, None, "Collective ops is aborted by: x"))
+    assert not cluster.is_peer_error(tf.errors.InvalidArgumentError(None, None, "Incompatible shapes"))
+    assert not cluster.is_peer_error(tf.errors.ResourceExhaustedError(None, None, "OOM when allocating"))
+    assert not cluster.is_peer_error(ValueError("not a TF error"))
 
 
 def test_short_reason_drops_tensorflows_frame():
     err = tf.errors.UnavailableError(None, None, "Graph execution error:\n\nDetected at node X defined at:\n"
                                      "  File \"a.py\", line 1, in f\n\nCollective ops is aborted by: gone\n"
                                      "\t [[{{node CollectiveReduceV2}}]] [Op:__inference_step]")
-    assert trainer_lib._short_reason(err) == "UnavailableError: Collective ops is aborted by: gone"
+    assert cluster.short_reason(err) == "UnavailableError: Collective ops is aborted by: gone"
 
 
 def test_join_barrier_waits_for_the_others_and_names_the_missing():
-    ports = [_closed_port(), _closed_port()]
+    ports = cluster.free_loopback_ports(2)
     tasks = [("worker", i, f"127.0.0.1:{p}") for i, p in enumerate(ports)]
     t0 = time.monotonic()
-    assert trainer_lib._join_barrier("worker 0", tasks, timeout_s=0.6) == ["worker 1"]
+    assert cluster._join_barrier("worker 0", tasks, timeout_s=0.6) == ["worker 1"]
     assert time.monotonic() - t0 >= 0.6
     # Worker 1 listening (its own barrier's placeholder): the barrier passes.
     other = socket.socket()
     other.bind(("127.0.0.1", ports[1]))
     other.listen(1)
     try:
-        assert trainer_lib._join_barrier("worker 0", tasks, timeout_s=30) == []
+        assert cluster._join_barrier("worker 0", tasks, timeout_s=30) == []
         # This task's own port taken (an earlier worker still running): a clear error naming it.
         with pytest.raises(RuntimeError, match=f"port {ports[1]} of worker 1 .* is in use"):
-            trainer_lib._join_barrier("worker 1", tasks, timeout_s=1)
+            cluster._join_barrier("worker 1", tasks, timeout_s=1)
     finally:
         other.close()
 
@@ -161,12 +153,8 @@ class Worker:
         return any(line.startswith(prefix) or line.startswith("[worker] " + prefix) for _, line in self.out)
 
 
-def _free_ports(n):
-    return [_closed_port() for _ in range(n)]
-
-
 def start_job(data_dir, model_dir, sets=SETS):
-    ports = _free_ports(2)
+    ports = cluster.free_loopback_ports(2)
     workers = []
     for index in range(2):
         tf_config = {"cluster": {"worker": [f"127.0.0.1:{p}" for p in ports]},
@@ -274,7 +262,7 @@ def test_sigterm_to_one_worker_saves_the_same_step_everywhere_and_resumes_exactl
 
 @pytest.mark.slow
 def test_a_worker_that_never_joins_ends_the_other(tiny_segment, tmp_path):
-    ports = _free_ports(2)
+    ports = cluster.free_loopback_ports(2)
     tf_config = {"cluster": {"worker": [f"127.0.0.1:{p}" for p in ports]}, "task": {"type": "worker", "index": 0}}
     cmd = [sys.executable, "tools/train.py", "--config", "", "--data_dir", os.path.dirname(tiny_segment),
            "--model_dir", str(tmp_path / "m")] + [a for kv in SETS + ("train.peer_join_timeout_s=5",)

@@ -8,7 +8,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -21,19 +20,10 @@ from conftest import ROOT, TINY_OVERRIDES
 from replica_reference import GLOBAL_BATCH, Reference, replica_config
 
 from ff3d_tf.checkpoints import restore_model
+from ff3d_tf.training import cluster
 from ff3d_tf.training.trainer import training_dataset
 
 STEPS = 3
-
-
-def _free_ports(n):
-    socks = [socket.socket() for _ in range(n)]
-    for s in socks:
-        s.bind(("127.0.0.1", 0))
-    ports = [s.getsockname()[1] for s in socks]
-    for s in socks:
-        s.close()
-    return ports
 
 
 def _sets(cfg_overrides):
@@ -45,7 +35,7 @@ SETS = TINY_OVERRIDES + ("train.global_batch_size=2", "train.log_every_steps=1",
 
 
 def _start_workers(data_dir, model_dir, steps):
-    ports = _free_ports(GLOBAL_BATCH)
+    ports = cluster.free_loopback_ports(GLOBAL_BATCH)
     procs = []
     for index in range(GLOBAL_BATCH):
         tf_config = {"cluster": {"worker": [f"127.0.0.1:{p}" for p in ports]},
