@@ -1,0 +1,322 @@
+"""Scene-flow pseudo-labels for one pair of sweeps by Neural Scene Flow Prior: the options, the MLPs, the objective, the
+per-pair fit (`nsfp_flow`) and the points it uses (`keep_mask`). The Chamfer term and the distance transform it reads
+are in `ff3d_tf.labels.distance_grid`; the check against Argoverse 2's own flow in `ff3d_tf.labels.nsfp_av2_check`.
+
+Neural Scene Flow Prior (NSFP; Li, Kaesemodel Pontes and Lucey, NeurIPS 2021): the flow of a pair is the output of a
+coordinate MLP (8 hidden layers of 128 units, ReLU), fitted to that pair alone with Adam on a Chamfer objective, plus a
+second MLP for the backward flow (its cycle term) and early stopping (NSFP's defaults: learning rate 0.008, L2 weight
+decay 1e-4 on both MLPs, patience 100 steps, minimum improvement 1e-4, at most 5000 steps; its Chamfer terms are
+mean SQUARED distances, truncated: a point whose squared distance is 2 m^2 or more counts 0; here the truncation is
+an option, `truncate_m=NSFP_TRUNCATE_M`, off by default: on the Argoverse 2 sample pair with it the one-sided fit
+stalled within 25 steps at zero motion, without it the loss kept falling). As Fast Neural Scene Flow (FastNSF), the
+Chamfer term reads a precomputed distance transform of the fixed cloud (`options.exact_chamfer`: exact nearest
+neighbours instead, for checking). Ground removal and the range crop (ZeroFlow's NSFP: z in [-3, 3] m) are options.
+
+Convention (the project's labels, `ff3d_tf.labels.box_flow`): the forward MLP gives `motion_m`, the displacement of
+each t0 point from t-1 to t0 in metres in the t0 vehicle frame; `points_xyz_t0 - motion_m` is where the point was at
+t-1 and is pulled onto the ego-compensated t-1 cloud `points_xyz_tm1_in_t0`; `flow_mps_t0 = motion_m / dt_s`. The
+cycle term moves that moved-back cloud forward again with the backward MLP and pulls it onto the t0 cloud. Both terms
+are one-sided Chamfer distances (mean squared distance of each moved point to its nearest point of the fixed cloud,
+m^2): only a fixed cloud has a distance transform.
+
+Why squared (NSFP's choice, the default; `squared_chamfer=False` gives mean distances in m): at the start both MLPs
+output ~0, where the cycle term is exactly 0 and holds the forward motion back until the backward MLP has learnt to
+undo it. With plain distances every point's gradient has unit length wherever it is, so that restoring pull is as
+strong for a 1 cm motion as for a 1 m one, while the forward term's pulls, each towards the point's current (often
+wrong) nearest neighbour, largely cancel: a moving object then stays at zero motion with exact neighbours, or creeps
+(the distance transform's smoothing) until early stopping ends the fit with its rotation unfitted. Squared distances
+pull in proportion to the distance: the cycle's pull vanishes at zero motion and the forward term wins
+(tests/labels/test_nsfp.py, the rigid-motion test, with both Chamfer forms).
+
+XLA: one compiled fit program per (point bucket, grid-size bucket) (`ff3d_tf.data.pairs.bucket_size`; the two clouds
+share a point bucket), run in segments of `segment_iterations` steps so that a caller sees progress; with the range
+crop set, x and y of the grid come from the crop box, so only the z extent varies between pairs (fewer compiled grid
+programs). Same seed, same inputs, same device: same labels.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Callable, NamedTuple
+
+import numpy as np
+import tensorflow as tf
+
+from ff3d_tf.data.pairs import bucket_size
+from ff3d_tf.labels.distance_grid import DistanceGrid, build_distance_grid, chamfer_loss, grid_geometry
+from ff3d_tf.model.step import adam_apply
+
+ADAM_BETA_1, ADAM_BETA_2, ADAM_EPSILON = 0.9, 0.999, 1e-8  # PyTorch's Adam defaults (NSFP's optimiser)
+NSFP_TRUNCATE_M = math.sqrt(2.0)  # NSFP's truncated Chamfer: squared nearest distances of 2 m^2 or more count 0
+
+
+@dataclasses.dataclass(frozen=True)
+class NsfpOptions:
+    """Options of `nsfp_flow`. The objective and `min_delta` are in m^2 (mean squared one-sided Chamfer distance;
+    m with `squared_chamfer=False`)."""
+    hidden_layers: int = 8  # NSFP: 8 hidden layers of 128, ReLU
+    hidden_units: int = 128
+    learning_rate: float = 8e-3  # Adam (NSFP and ZeroFlow: 0.008)
+    warmup_iterations: int = 0  # learning rate ramped linearly from learning_rate / n to it over the first n steps
+    weight_decay: float = 1e-4  # L2 added to the gradients (NSFP's per-group weight_decay on both MLPs)
+    max_iterations: int = 5000
+    patience: int = 100  # stop after this many steps without the loss improving by more than min_delta
+    min_delta: float = 1e-4  # in the objective's units (m^2; m with squared_chamfer=False)
+    backward_cycle: bool = True  # NSFP's backward-flow term
+    exact_chamfer: bool = False  # exact nearest neighbours (O(N*M) a step; for checking) instead of the grid
+    squared_chamfer: bool = True  # mean squared distance (NSFP's Chamfer; see the module docstring), else mean distance
+    truncate_m: float | None = None  # points this far or farther from the target count 0 (NSFP: NSFP_TRUNCATE_M)
+    grid_cell_m: float = 0.1  # finest level of the distance transform (FastNSF: 0.1 m)
+    grid_margin_m: float = 0.5  # grid bounds: the kept clouds' bounding box (or crop box) grown by this much
+    band_cells: int = 4  # finest level exact wherever the nearest point is within this many cells
+    coarse_band_cells: int = 3  # the same on the coarser levels
+    max_grid_cells: int = 1 << 26  # refuse grids larger than this (memory: 4 bytes a node, two grids a pair)
+    remove_ground_below_z_m: float | None = None  # drop points with z below this (vehicle frame), None: keep all
+    crop_xy_half_extent_m: float | None = None  # keep points with |x| and |y| at most this, None: no crop
+    crop_z_range_m: tuple[float, float] | None = None  # keep points with z in [lo, hi] (ZeroFlow: (-3, 3))
+    point_bucket_base: int = 1024
+    segment_iterations: int = 100  # Adam steps per compiled call (progress is reported between calls)
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("hidden_layers", "hidden_units", "max_iterations", "patience", "max_grid_cells",
+                     "point_bucket_base", "band_cells", "coarse_band_cells", "segment_iterations"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"NsfpOptions.{name}: must be an integer >= 1, got {value!r}")
+        if isinstance(self.warmup_iterations, bool) or not isinstance(self.warmup_iterations, int) \
+                or self.warmup_iterations < 0:
+            raise ValueError(f"NsfpOptions.warmup_iterations: must be an integer >= 0, got {self.warmup_iterations!r}")
+        for name in ("learning_rate", "grid_cell_m"):
+            if not _is_real(getattr(self, name)) or not getattr(self, name) > 0:
+                raise ValueError(f"NsfpOptions.{name}: must be a finite number > 0, got {getattr(self, name)!r}")
+        for name in ("min_delta", "grid_margin_m", "weight_decay"):
+            if not _is_real(getattr(self, name)) or getattr(self, name) < 0:
+                raise ValueError(f"NsfpOptions.{name}: must be a finite number >= 0, got {getattr(self, name)!r}")
+        if self.truncate_m is not None and not (_is_real(self.truncate_m) and self.truncate_m > 0):
+            raise ValueError(f"NsfpOptions.truncate_m: must be a finite number > 0 or None, got {self.truncate_m!r}")
+        if self.remove_ground_below_z_m is not None and not _is_real(self.remove_ground_below_z_m):
+            raise ValueError(f"NsfpOptions.remove_ground_below_z_m: must be a finite number or None, "
+                             f"got {self.remove_ground_below_z_m!r}")
+        crop = self.crop_xy_half_extent_m
+        if crop is not None and not (_is_real(crop) and crop > 0):
+            raise ValueError(f"NsfpOptions.crop_xy_half_extent_m: must be a finite number > 0 or None, got {crop!r}")
+        z_range = self.crop_z_range_m
+        if z_range is not None and not (isinstance(z_range, (tuple, list)) and len(z_range) == 2
+                                        and all(_is_real(z) for z in z_range) and z_range[0] < z_range[1]):
+            raise ValueError(f"NsfpOptions.crop_z_range_m: must be (lo, hi) with lo < hi or None, got {z_range!r}")
+        for name in ("backward_cycle", "exact_chamfer", "squared_chamfer"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"NsfpOptions.{name}: must be a bool, got {getattr(self, name)!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2 ** 31:
+            raise ValueError(f"NsfpOptions.seed: must be an integer in [0, 2**31), got {self.seed!r}")
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+@dataclasses.dataclass(frozen=True)
+class NsfpResult:
+    flow_mps_t0: np.ndarray  # [N,3] float32, t0 vehicle frame; 0 where not valid
+    valid_t0: np.ndarray  # [N] bool: the point was kept (ground removal, crop) and optimised
+    num_iterations: int  # Adam steps taken
+    loss: float  # best objective (forward + cycle Chamfer; m^2, or m with squared_chamfer=False); its flow is returned
+    grid_s: float  # seconds building the distance grids (0 with exact_chamfer)
+    fit_s: float  # seconds in the fit
+
+
+# --- the prior and its per-pair fit ----------------------------------------------------------------------------------
+
+def init_mlp(seed: int, stream: int, hidden_layers: int, hidden_units: int) -> list[tf.Tensor]:
+    """[w0, b0, w1, b1, ...] of an MLP 3 -> hidden_units x hidden_layers -> 3, each entry uniform in
+    +-1/sqrt(fan_in) (PyTorch's nn.Linear default, as NSFP's MLP), from a stateless seed."""
+    widths = [3] + [hidden_units] * hidden_layers + [3]
+    params = []
+    for layer, (fan_in, fan_out) in enumerate(zip(widths[:-1], widths[1:])):
+        bound = 1.0 / math.sqrt(fan_in)
+        for part, shape in enumerate(([fan_in, fan_out], [fan_out])):
+            params.append(tf.random.stateless_uniform(shape, seed=[seed, (stream * 1000 + layer) * 2 + part],
+                                                      minval=-bound, maxval=bound))
+    return params
+
+
+def mlp(params, xyz):
+    """The coordinate MLP: ReLU after every hidden layer, linear output (m)."""
+    h = xyz
+    for w, b in zip(params[0:-2:2], params[1:-2:2]):
+        h = tf.nn.relu(tf.matmul(h, w) + b)
+    return tf.matmul(h, params[-2]) + params[-1]
+
+
+def nsfp_objective(forward, backward, points_xyz_t0, mask_t0, points_xyz_tm1, mask_tm1, grid_tm1, grid_t0,
+                   exact: bool, squared: bool = False, truncate_m=None):
+    """(objective in m, or m^2 when `squared`; motion_m [B,3]): Chamfer of the moved-back t0 cloud to the t-1 cloud,
+    plus (when `backward` is not None) Chamfer of that cloud moved forward by the backward MLP to the t0 cloud."""
+    motion_m = mlp(forward, points_xyz_t0)
+    moved_back_xyz = points_xyz_t0 - motion_m  # where each t0 point was at t-1
+    loss = chamfer_loss(moved_back_xyz, mask_t0, points_xyz_tm1, mask_tm1, grid_tm1, exact, squared, truncate_m)
+    if backward is not None:
+        moved_forward_xyz = moved_back_xyz + mlp(backward, moved_back_xyz)
+        loss += chamfer_loss(moved_forward_xyz, mask_t0, points_xyz_t0, mask_t0, grid_t0, exact, squared, truncate_m)
+    return loss, motion_m
+
+
+class _FitState(NamedTuple):
+    step: tf.Tensor  # Adam steps taken
+    params: list  # forward MLP's tensors, then the backward MLP's
+    adam_m: list
+    adam_v: list
+    best_loss: tf.Tensor  # lowest objective seen; best_motion is its motion
+    best_motion: tf.Tensor
+    reference_loss: tf.Tensor  # early stopping: the loss at the last improvement by more than min_delta
+    stale: tf.Tensor  # steps since then
+
+
+@tf.function(jit_compile=True)
+def _fit_segment(state: _FitState, clouds, grids, hyper, num_forward: int, exact: bool, squared: bool,
+                 segment: int):
+    """Up to `segment` Adam steps on the NSFP objective in one in-graph loop, stopping early (patience) or at
+    max_iterations; the loss of a step is that of the parameters before its update."""
+    learning_rate, warmup, weight_decay, min_delta, patience, max_iterations, truncate_m = hyper
+    end = tf.minimum(state.step + segment, max_iterations)
+
+    def objective(p):
+        return nsfp_objective(p[:num_forward], p[num_forward:] or None, *clouds, *grids, exact, squared, truncate_m)
+
+    def body(s: _FitState):
+        with tf.GradientTape() as tape:
+            tape.watch(s.params)
+            loss, motion_m = objective(s.params)
+        grads = tape.gradient(loss, s.params, unconnected_gradients=tf.UnconnectedGradients.ZERO)
+        grads = [g + weight_decay * p for g, p in zip(grads, s.params)]
+        best = loss < s.best_loss
+        improved = loss < s.reference_loss - min_delta
+        rate = learning_rate * tf.minimum(1.0, tf.cast(s.step + 1, tf.float32) / tf.cast(tf.maximum(warmup, 1),
+                                                                                           tf.float32))
+        params, adam_m, adam_v = adam_apply(s.params, grads, s.adam_m, s.adam_v, s.step, rate,
+                                            ADAM_BETA_1, ADAM_BETA_2, ADAM_EPSILON)
+        return _FitState(s.step + 1, params, adam_m, adam_v, tf.where(best, loss, s.best_loss),
+                         tf.where(best, motion_m, s.best_motion), tf.where(improved, loss, s.reference_loss),
+                         tf.where(improved, 0, s.stale + 1))
+
+    def running(s: _FitState):
+        return (s.step < end) & (s.stale < patience)
+
+    return tf.while_loop(running, lambda s: [body(s)], [state])[0]
+
+
+# --- a pair in, flow out ---------------------------------------------------------------------------------------------
+
+def keep_mask(points_xyz: np.ndarray, options: NsfpOptions) -> np.ndarray:
+    """[P] bool: points that survive ground removal and the range crop (vehicle frame)."""
+    keep = np.ones(len(points_xyz), bool)
+    if options.remove_ground_below_z_m is not None:
+        keep &= points_xyz[:, 2] >= options.remove_ground_below_z_m
+    if options.crop_xy_half_extent_m is not None:
+        keep &= np.all(np.abs(points_xyz[:, :2]) <= options.crop_xy_half_extent_m, axis=1)
+    if options.crop_z_range_m is not None:
+        keep &= (points_xyz[:, 2] >= options.crop_z_range_m[0]) & (points_xyz[:, 2] <= options.crop_z_range_m[1])
+    return keep
+
+
+def _padded(points_xyz: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    out = np.zeros((size, 3), np.float32)
+    out[: len(points_xyz)] = points_xyz
+    return out, np.arange(size) < len(points_xyz)
+
+
+def _checked_cloud(points_xyz, name: str) -> np.ndarray:
+    points_xyz = np.asarray(points_xyz, np.float32)
+    if points_xyz.ndim != 2 or points_xyz.shape[1] != 3:
+        raise ValueError(f"nsfp_flow: {name} must be [N,3], got shape {points_xyz.shape}")
+    if not np.isfinite(points_xyz).all():
+        raise ValueError(f"nsfp_flow: {name} has non-finite coordinates")
+    return points_xyz
+
+
+def _checked_keep(keep, size: int, name: str) -> np.ndarray:
+    if keep is None:
+        return np.ones(size, bool)
+    keep = np.asarray(keep)
+    if keep.dtype != bool or keep.shape != (size,):
+        raise ValueError(f"nsfp_flow: {name} must be a bool array of shape ({size},), got {keep.dtype} {keep.shape}")
+    return keep
+
+
+def _crop_box(options: NsfpOptions):
+    """Per axis (lo, hi) of the grid box in the vehicle frame: x and y from the crop when set (the same grid extent
+    for every pair), None (the clouds' bounding box) otherwise and for z (a z crop is much taller than what the kept
+    points fill: ground removed, few points above 3 m)."""
+    xy = options.crop_xy_half_extent_m
+    xy_box = None if xy is None else (-float(xy), float(xy))
+    return xy_box, xy_box, None
+
+
+def nsfp_flow(points_xyz_t0, points_xyz_tm1_in_t0, dt_s: float, options: NsfpOptions = NsfpOptions(),
+              keep_t0=None, keep_tm1=None, progress: Callable[[int, float], None] | None = None) -> NsfpResult:
+    """NSFP flow (m/s, t0 vehicle frame, the project's convention) of every t0 point, from the t0 cloud [N,3] and the
+    ego-compensated t-1 cloud [M,3] (t0 vehicle frame). `keep_t0` / `keep_tm1` ([N] / [M] bool, optional): points to
+    use besides the options' ground removal and crop (e.g. a map's ground labels). Points not used get flow 0 and
+    `valid_t0` False, as do all points when either kept cloud is empty. `progress(steps, best_loss)` is called
+    after every `segment_iterations` steps."""
+    xyz_t0 = _checked_cloud(points_xyz_t0, "points_xyz_t0")
+    xyz_tm1 = _checked_cloud(points_xyz_tm1_in_t0, "points_xyz_tm1_in_t0")
+    if not (_is_real(dt_s) and dt_s > 0):
+        raise ValueError(f"nsfp_flow: dt_s must be a finite number > 0, got {dt_s!r}")
+    keep_t0 = keep_mask(xyz_t0, options) & _checked_keep(keep_t0, len(xyz_t0), "keep_t0")
+    keep_tm1 = keep_mask(xyz_tm1, options) & _checked_keep(keep_tm1, len(xyz_tm1), "keep_tm1")
+    flow_mps = np.zeros_like(xyz_t0)
+    if not keep_t0.any() or not keep_tm1.any():
+        return NsfpResult(flow_mps, np.zeros(len(xyz_t0), bool), 0, float("nan"), 0.0, 0.0)
+    kept_t0, kept_tm1 = xyz_t0[keep_t0], xyz_tm1[keep_tm1]
+    box = _crop_box(options)
+    origin_m, dims = grid_geometry([kept_t0, kept_tm1], options.grid_cell_m, options.grid_margin_m,
+                                   options.max_grid_cells, box)
+    # Centred coordinates: the MLP sees the scene around 0, and the nearest-neighbour matmul keeps its precision.
+    centre_m = (origin_m + (dims - 1) * np.float32(options.grid_cell_m) / 2).astype(np.float32)
+    kept_t0, kept_tm1, origin_m = kept_t0 - centre_m, kept_tm1 - centre_m, origin_m - centre_m
+    size = bucket_size(max(len(kept_t0), len(kept_tm1)), options.point_bucket_base)
+    padded_t0, padded_tm1 = _padded(kept_t0, size), _padded(kept_tm1, size)
+    start = time.perf_counter()
+    if options.exact_chamfer:
+        placeholder = DistanceGrid(tf.zeros([8]), tf.zeros([3]), tf.constant([2, 2, 2]), tf.constant(1.0))
+        grids = (placeholder, placeholder)
+    else:
+        def grid(padded):
+            return build_distance_grid(*padded, origin_m, dims, options.grid_cell_m, options.band_cells,
+                                       options.coarse_band_cells)
+        grid_tm1 = grid(padded_tm1)
+        grids = (grid_tm1, grid(padded_t0) if options.backward_cycle else grid_tm1)
+    grid_s = time.perf_counter() - start if not options.exact_chamfer else 0.0
+    (t0, mask_t0), (tm1, mask_tm1) = [tuple(map(tf.constant, padded)) for padded in (padded_t0, padded_tm1)]
+    start = time.perf_counter()
+    state = initial_fit_state(options, size)
+    hyper = (tf.constant(options.learning_rate, tf.float32), tf.constant(options.warmup_iterations),
+             tf.constant(options.weight_decay, tf.float32),
+             tf.constant(options.min_delta, tf.float32), tf.constant(options.patience),
+             tf.constant(options.max_iterations),
+             tf.constant(np.inf if options.truncate_m is None else options.truncate_m, tf.float32))
+    num_forward = 2 * (options.hidden_layers + 1)
+    while True:
+        state = _fit_segment(state, (t0, mask_t0, tm1, mask_tm1), grids, hyper, num_forward, options.exact_chamfer,
+                             options.squared_chamfer, options.segment_iterations)
+        steps = int(state.step)
+        if progress is not None:
+            progress(steps, float(state.best_loss))
+        if steps >= options.max_iterations or int(state.stale) >= options.patience:
+            break
+    motion_m = state.best_motion.numpy()[: len(kept_t0)]
+    flow_mps[keep_t0] = motion_m / np.float32(dt_s)
+    return NsfpResult(flow_mps, keep_t0, steps, float(state.best_loss), grid_s, time.perf_counter() - start)
+
+
+def initial_fit_state(options: NsfpOptions, num_points: int) -> _FitState:
+    """The fit's state before its first step: the MLPs initialised from `options.seed`, Adam's slots at 0."""
+    params = init_mlp(options.seed, 0, options.hidden_layers, options.hidden_units)
+    if options.backward_cycle:
+        params += init_mlp(options.seed, 1, options.hidden_layers, options.hidden_units)
+    zeros = [tf.zeros_like(p) for p in params]
+    return _FitState(tf.constant(0), params, zeros, list(zeros), tf.constant(np.inf, tf.float32),
+                     tf.zeros([num_points, 3]), tf.constant(np.inf, tf.float32), tf.constant(0))

@@ -1,0 +1,325 @@
+"""NSFP pseudo-labels: the distance transform (ff3d_tf.labels.distance_grid) against brute-force nearest distances
+(exact at nodes within the band, the documented pyramid elsewhere, trilinear reads within half a cell diagonal), exact
+nearest neighbours and the Chamfer terms; the per-pair optimiser (ff3d_tf.labels.nsfp): a known rigid motion
+recovered with the project's sign, determinism, options and input checks; the Argoverse 2 sample pair against
+Argoverse's own flow (ff3d_tf.labels.nsfp_av2_check, slow). Clouds of a few hundred points, a few hundred steps."""
+import dataclasses
+import os
+
+import numpy as np
+import pytest
+import tensorflow as tf
+
+from ff3d_tf.labels import distance_grid, nsfp, nsfp_av2_check
+
+DT_S = 0.1
+MOTION_M = np.array([0.5, 0.0, 0.0], np.float32)  # t-1 -> t0 displacement: 0.5 m in x over 0.1 s, flow (5, 0, 0) m/s
+TINY = nsfp.NsfpOptions(max_iterations=400, patience=50, grid_cell_m=0.1, point_bucket_base=256)
+# The fit's bookkeeping tests: exact neighbours (no grid program to compile), a small MLP (a faster compile), 30 steps
+# in segments of 10, clouds of 8 clusters (200 points, one point bucket): they share one compiled fit program.
+FIT = dataclasses.replace(TINY, exact_chamfer=True, max_iterations=30, patience=30, segment_iterations=10,
+                          hidden_layers=2, hidden_units=32)
+NUM_OBJECT = 360  # points on the moving object of `_rigid_scene`; the walls follow
+AV2_LOG = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "data",
+                       "av2_sample_log")
+
+
+def _clusters(seed=0, num_clusters=12, per_cluster=25):
+    """A t0 cloud of small blobs (0.1 m spread) a few metres apart: a shift matches each blob to itself only."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform([-4, -4, 0], [4, 4, 1.5], (num_clusters, 3))
+    return (centres[:, None] + rng.normal(0, 0.1, (num_clusters, per_cluster, 3))).reshape(-1, 3).astype(np.float32)
+
+
+def _brute_nearest_m(query, points):
+    """float64 nearest distance of each query point to `points`, 2000 queries at a time."""
+    query, points = np.asarray(query, np.float64), np.asarray(points, np.float64)
+    return np.concatenate([np.sqrt(((query[i:i + 2000, None] - points[None]) ** 2).sum(-1)).min(1)
+                           for i in range(0, len(query), 2000)])
+
+
+def _all_nodes(origin_m, dims, cell_m):
+    ijk = np.stack(np.meshgrid(*[np.arange(d) for d in dims], indexing="ij"), -1).reshape(-1, 3)
+    return origin_m.astype(np.float64) + ijk * np.float64(np.float32(cell_m))
+
+
+def _corners(shape, origin_m, cell_m, query):
+    """The 8 corner indices and trilinear weights of each query point's cell in a [X,Y,Z] node array (float64)."""
+    u = (query - origin_m) / cell_m
+    base = np.minimum(np.floor(u).astype(np.int64), np.array(shape) - 2)
+    frac = u - base
+    for corner in np.ndindex(2, 2, 2):
+        c = np.array(corner)
+        yield tuple((base + c).T), np.prod(np.where(c == 1, frac, 1 - frac), axis=1)
+
+
+def _trilinear_np(values, origin_m, cell_m, query):
+    """Trilinear interpolation of a [X,Y,Z] node array at query points inside it, corner by corner."""
+    return sum(weight * values[index] for index, weight in _corners(values.shape, origin_m, cell_m, query))
+
+
+def _corner_max_np(values, origin_m, cell_m, query):
+    """The largest of the 8 corner values of each query point's cell."""
+    return np.max([values[index] for index, _ in _corners(values.shape, origin_m, cell_m, query)], axis=0)
+
+
+@pytest.fixture(scope="module")
+def cluster_grid():
+    points = _clusters(seed=1)
+    cell_m = 0.1
+    origin_m, dims = distance_grid.grid_geometry([points], cell_m, margin_m=1.0, max_cells=1 << 22)
+    grid = distance_grid.build_distance_grid(points, np.ones(len(points), bool), origin_m, dims, cell_m,
+                                             band_cells=3, coarse_band_cells=2)
+    values = grid.distance_m.numpy()[: np.prod(dims)].reshape(dims)
+    return points, origin_m, dims, cell_m, grid, values
+
+
+def test_distance_transform_is_exact_at_nodes_within_the_band(cluster_grid):
+    """At every node whose nearest point is within band_cells cells, the grid holds the brute-force nearest distance
+    to the points themselves (not to cell centres)."""
+    points, origin_m, dims, cell_m, _, values = cluster_grid
+    exact_m = _brute_nearest_m(_all_nodes(origin_m, dims, cell_m), points)
+    in_band = exact_m <= 3 * cell_m
+    assert in_band.sum() > 3000 and (~in_band).sum() > 3000  # both kinds of node are tested
+    np.testing.assert_allclose(values.reshape(-1)[in_band], exact_m[in_band], atol=1e-5, rtol=0)
+
+
+def test_distance_transform_equals_its_pyramid_definition_everywhere(cluster_grid):
+    """Every node of every level: the exact distance where within the level's band, else the trilinear interpolation
+    of the level above; the top level exact everywhere. Rebuilt here from brute-force distances, level by level, with
+    the error bound that follows: off the band, |interpolation - d| <= (max corner error above) + half the coarser
+    cell's diagonal (d is 1-Lipschitz)."""
+    points, origin_m, dims, cell_m, _, values = cluster_grid
+    levels = distance_grid.pyramid_dims(dims)
+    assert len(levels) >= 3 and np.prod(levels[-1]) <= distance_grid.TOP_LEVEL_MAX_NODES
+    origin = origin_m.astype(np.float64)
+    above = above_error = None
+    for level in range(len(levels) - 1, -1, -1):
+        h = np.float64(np.float32(cell_m) * distance_grid.level_scale(level))
+        nodes = _all_nodes(origin_m, levels[level], h)
+        exact_m = _brute_nearest_m(nodes, points)
+        if above is None:
+            expected, bound = exact_m, np.zeros_like(exact_m)
+        else:
+            f = distance_grid.level_factor(level)
+            assert np.all(f * (np.array(levels[level + 1]) - 1) >= np.array(levels[level]) - 1)  # covers the level
+            band = 3 if level == 0 else 2
+            in_band = exact_m <= band * h
+            expected = np.where(in_band, exact_m, _trilinear_np(above, origin, f * h, nodes))
+            bound = np.where(in_band, 0.0, _corner_max_np(above_error, origin, f * h, nodes) + f * h * np.sqrt(3) / 2)
+        above, above_error = expected.reshape(levels[level]), bound.reshape(levels[level])
+    np.testing.assert_allclose(values, above, atol=2e-5, rtol=0)
+    exact_m = _brute_nearest_m(_all_nodes(origin_m, dims, cell_m), points).reshape(dims)
+    assert np.all(np.abs(values - exact_m) <= above_error + 2e-5)
+    off_band = exact_m > 3 * cell_m
+    assert above_error[off_band].min() > 0 and np.abs(values - exact_m)[off_band].max() > 1e-3  # a real check
+
+
+def test_trilinear_reads_within_half_a_cell_diagonal(cluster_grid):
+    """The distance d is 1-Lipschitz, and trilinear weights w_c (per axis t, 1-t) at corners c give
+    |sum_c w_c d(c) - d(q)| <= sum_c w_c |c - q| <= sqrt(sum_c w_c |c - q|^2) = h sqrt(sum_axes t(1-t)) <= h sqrt(3)/2:
+    half a cell diagonal, wherever the 8 corners hold exact distances (d(q) + h sqrt(3) within the band)."""
+    points, origin_m, dims, cell_m, grid, _ = cluster_grid
+    rng = np.random.default_rng(2)
+    query = points[rng.integers(0, len(points), 3000)] + rng.normal(0, 0.06, (3000, 3)).astype(np.float32)
+    exact_m = _brute_nearest_m(query, points)
+    corners_exact = exact_m + cell_m * np.sqrt(3) <= 3 * cell_m
+    assert corners_exact.sum() > 1000
+    error_m = np.abs(distance_grid.read_distance_grid(grid, tf.constant(query)).numpy() - exact_m)[corners_exact]
+    assert error_m.max() <= cell_m * np.sqrt(3) / 2 + 1e-5, error_m.max()
+    assert error_m.mean() < 0.25 * cell_m, error_m.mean()
+
+
+def test_off_grid_reads_add_the_distance_to_the_grid(cluster_grid):
+    points, origin_m, dims, cell_m, grid, values = cluster_grid
+    far_corner = origin_m + (dims - 1) * np.float32(cell_m)
+    query = np.stack([far_corner + [2.0, 0.0, 0.0], origin_m - [0.0, 0.0, 1.5]]).astype(np.float32)
+    read = distance_grid.read_distance_grid(grid, tf.constant(query)).numpy()
+    np.testing.assert_allclose(read, [values[-1, -1, -1] + 2.0, values[0, 0, 0] + 1.5], atol=1e-4)
+
+
+def test_band_offsets_hold_every_offset_a_point_within_the_band_can_have():
+    """Random points in a cell and nodes within band_cells cells of them: the node's offset from the point's own node
+    is in the stencil, and the stencil is smaller than the cube."""
+    rng = np.random.default_rng(3)
+    for band in (2, 3, 4):
+        offsets = {tuple(o) for o in distance_grid.band_offsets(band)}
+        assert len(offsets) < (2 * band + 1) ** 3
+        point = rng.uniform(-0.5, 0.5, (20000, 3))  # in the cell of node 0 (cell size 1)
+        node = np.round(point + rng.normal(0, 1, (20000, 3)) * band).astype(np.int64)
+        within = np.linalg.norm(node - point, axis=1) <= band
+        assert within.sum() > 3000
+        assert all(tuple(o) in offsets for o in node[within])
+
+
+def test_exact_nearest_distance_against_numpy():
+    """Queries in several chunks (not a multiple of the chunk), invalid targets ignored."""
+    rng = np.random.default_rng(4)
+    query = rng.uniform(-3, 3, (distance_grid._EXACT_QUERY_CHUNK + 77, 3)).astype(np.float32)
+    target = rng.uniform(-3, 3, (300, 3)).astype(np.float32)
+    mask = rng.random(300) < 0.7
+    got = distance_grid.exact_nearest_distance_m(tf.constant(query), tf.constant(target), tf.constant(mask)).numpy()
+    np.testing.assert_allclose(got, _brute_nearest_m(query, target[mask]), atol=1e-5)
+
+
+def _rigid_scene(seed=0, num_object=NUM_OBJECT, num_wall=240):
+    """A box-shaped object (surfaces of a 4.5 x 1.8 x 1.5 m box, `num_object` points) turning by 4 degrees and moving
+    by (0.6, 0.2, 0) m between t-1 and t0, beside two static walls (`num_wall` points). Returns the t0 cloud, the t-1
+    cloud (the same surface points at t-1) and each t0 point's true motion t-1 -> t0 (m)."""
+    rng = np.random.default_rng(seed)
+    q = rng.uniform(-0.5, 0.5, (num_object, 3))
+    face = rng.integers(0, 3, num_object)
+    q[np.arange(num_object), face] = np.sign(q[np.arange(num_object), face]) * 0.5
+    car_tm1 = q * [4.5, 1.8, 1.5] + [0.0, 0.0, 0.9]
+    yaw = np.deg2rad(4.0)
+    rotation = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    car_t0 = car_tm1 @ rotation.T + [0.6, 0.2, 0.0]
+    t = rng.uniform(-6, 6, num_wall)
+    walls = np.stack([t, np.where(np.arange(num_wall) < num_wall // 2, 4.0, -4.0), rng.uniform(0, 2.5, num_wall)], -1)
+    t0 = np.concatenate([car_t0, walls]).astype(np.float32)
+    tm1 = np.concatenate([car_tm1, walls]).astype(np.float32)
+    return t0, tm1, (t0 - tm1).astype(np.float32)
+
+
+@pytest.mark.parametrize("exact", [False, True])
+def test_recovers_a_known_rigid_motion_with_the_project_sign_convention(exact):
+    """With NSFP's squared Chamfer and its cycle term (the defaults). With plain distances the cycle term, 0 at zero
+    motion, held the object at zero motion (exact) or until early stopping (distance transform): see nsfp's module
+    docstring and the test below."""
+    points_t0, points_tm1_in_t0, motion_m = _rigid_scene()
+    options = dataclasses.replace(TINY, exact_chamfer=exact, max_iterations=600)
+    result = nsfp.nsfp_flow(points_t0, points_tm1_in_t0, DT_S, options)
+    assert result.valid_t0.all() and 0 < result.num_iterations <= 600
+    error_m_per_frame = np.linalg.norm(result.flow_mps_t0 * DT_S - motion_m, axis=1)
+    # issue 18: a known rigid motion recovered to < 0.05 m/frame (mean over the object's points; the walls stay put)
+    assert error_m_per_frame[:NUM_OBJECT].mean() < 0.05, error_m_per_frame[:NUM_OBJECT].mean()
+    assert error_m_per_frame[NUM_OBJECT:].mean() < 0.05, error_m_per_frame[NUM_OBJECT:].mean()
+    # +x, in m/s: the sign of the box labels, not the reverse motion
+    assert result.flow_mps_t0[:NUM_OBJECT, 0].mean() > 5.0
+
+
+def test_crop_ground_removal_and_keep_masks_give_zero_flow_and_invalid_points():
+    points_t0 = _clusters(num_clusters=8)
+    keep_t0 = np.arange(len(points_t0)) % 7 != 0
+    options = dataclasses.replace(FIT, remove_ground_below_z_m=0.2, crop_xy_half_extent_m=3.0,
+                                  crop_z_range_m=(-1.0, 1.4))
+    result = nsfp.nsfp_flow(points_t0, points_t0 - MOTION_M, DT_S, options, keep_t0=keep_t0)
+    dropped = ((points_t0[:, 2] < 0.2) | (np.abs(points_t0[:, :2]) > 3.0).any(1) | (points_t0[:, 2] > 1.4)
+               | ~keep_t0)
+    assert dropped.any() and not dropped.all()
+    np.testing.assert_array_equal(result.valid_t0, ~dropped)
+    assert (result.flow_mps_t0[dropped] == 0).all() and (result.flow_mps_t0[~dropped] != 0).any()
+
+
+def test_same_seed_same_flow():
+    points_t0 = _clusters(seed=3, num_clusters=8)
+    options = FIT
+    runs = [nsfp.nsfp_flow(points_t0, points_t0 - MOTION_M, DT_S, options) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0].flow_mps_t0, runs[1].flow_mps_t0)
+    assert runs[0].num_iterations == runs[1].num_iterations == 30
+    other = nsfp.nsfp_flow(points_t0, points_t0 - MOTION_M, DT_S, dataclasses.replace(options, seed=1))
+    assert not np.array_equal(other.flow_mps_t0, runs[0].flow_mps_t0)
+
+
+def test_segments_and_progress_do_not_change_the_fit():
+    """The fit in segments of 10 steps (with progress reports) equals it in one segment of 30."""
+    points_t0 = _clusters(seed=5, num_clusters=8)
+    reports = []
+    split = nsfp.nsfp_flow(points_t0, points_t0 - MOTION_M, DT_S, FIT,
+                           progress=lambda steps, loss: reports.append(steps))
+    whole = nsfp.nsfp_flow(points_t0, points_t0 - MOTION_M, DT_S, dataclasses.replace(FIT, segment_iterations=30))
+    assert reports == [10, 20, 30]
+    np.testing.assert_allclose(split.flow_mps_t0, whole.flow_mps_t0, atol=1e-5)
+
+
+def test_early_stopping_stops_when_the_loss_stalls():
+    """Identical clouds: zero motion is optimal from the start up to tiny steps, so patience ends the fit early."""
+    points = _clusters(seed=6, num_clusters=8)
+    options = dataclasses.replace(FIT, patience=10, min_delta=0.5)
+    result = nsfp.nsfp_flow(points, points, DT_S, options)
+    assert result.num_iterations == 11  # step 0 sets the reference; 10 steps without a 0.5 m^2 improvement
+
+
+@pytest.mark.parametrize("field, value", [("hidden_layers", 0), ("learning_rate", -1.0), ("grid_cell_m", 0.0),
+                                          ("min_delta", float("nan")), ("patience", 2.5), ("exact_chamfer", 1),
+                                          ("crop_xy_half_extent_m", -3.0), ("remove_ground_below_z_m", "low"),
+                                          ("seed", -1), ("max_iterations", True), ("crop_z_range_m", (3.0, -3.0)),
+                                          ("weight_decay", -1e-4), ("band_cells", 0), ("truncate_m", 0.0),
+                                          ("warmup_iterations", -1), ("squared_chamfer", "yes")])
+def test_options_validation_names_the_field(field, value):
+    with pytest.raises(ValueError, match=f"NsfpOptions.{field}"):
+        nsfp.NsfpOptions(**{field: value})
+
+
+def test_bad_inputs_are_named():
+    with pytest.raises(ValueError, match="NsfpOptions.grid_cell_m"):
+        nsfp.nsfp_flow(_clusters(), _clusters(), DT_S, dataclasses.replace(TINY, grid_cell_m=0.001))
+    with pytest.raises(ValueError, match="points_xyz_tm1_in_t0 must be"):
+        nsfp.nsfp_flow(_clusters(), _clusters()[:, :2], DT_S, TINY)
+    with pytest.raises(ValueError, match="keep_tm1 must be a bool array"):
+        nsfp.nsfp_flow(_clusters(), _clusters(), DT_S, TINY, keep_tm1=np.ones(3, bool))
+    with pytest.raises(ValueError, match="dt_s"):
+        nsfp.nsfp_flow(_clusters(), _clusters(), 0.0, TINY)
+
+
+def test_exact_and_distance_transform_chamfer_agree():
+    points_t0 = _clusters(seed=4)
+    rng = np.random.default_rng(5)
+    points_tm1 = points_t0 - MOTION_M + rng.normal(0, 0.02, points_t0.shape).astype(np.float32)
+    moved_back = tf.constant(points_t0 - MOTION_M + rng.normal(0, 0.1, points_t0.shape).astype(np.float32))
+    mask = tf.ones(len(points_t0), tf.bool)
+    cell_m = 0.1
+    origin_m, dims = distance_grid.grid_geometry([points_t0, points_tm1], cell_m, 1.0, 1 << 22)
+    grid = distance_grid.build_distance_grid(points_tm1, np.ones(len(points_tm1), bool), origin_m, dims, cell_m)
+    exact_m = float(distance_grid.chamfer_loss(moved_back, mask, tf.constant(points_tm1), mask, None, exact=True))
+    grid_m = float(distance_grid.chamfer_loss(moved_back, mask, tf.constant(points_tm1), mask, grid, exact=False))
+    # Each point's error is at most half a cell diagonal (0.087 m); on average they largely cancel.
+    assert abs(grid_m - exact_m) < 0.1 * exact_m, (grid_m, exact_m)
+
+
+@pytest.mark.parametrize("squared", [False, True])
+def test_chamfer_squared_and_truncated_against_numpy(squared):
+    """Mean over valid queries of d (or d^2), d the nearest valid target distance, 0 where d >= truncate_m; the
+    denominator counts every valid query (NSFP's truncated Chamfer)."""
+    rng = np.random.default_rng(8)
+    query = rng.uniform(-2, 2, (400, 3)).astype(np.float32)
+    target = rng.uniform(-1, 1, (50, 3)).astype(np.float32)
+    query_mask, target_mask = rng.random(400) < 0.8, rng.random(50) < 0.9
+    d = _brute_nearest_m(query, target[target_mask])
+    kept = np.where(d < 0.5, d, 0.0) ** (2 if squared else 1)
+    expected = kept[query_mask].sum() / query_mask.sum()
+    assert 0.2 < (d[query_mask] >= 0.5).mean() < 0.8  # the truncation matters here
+    got = distance_grid.chamfer_loss(tf.constant(query), tf.constant(query_mask), tf.constant(target),
+                                     tf.constant(target_mask), None, exact=True, squared=squared, truncate_m=0.5)
+    np.testing.assert_allclose(float(got), expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("subsample", [0, 2.0, True])
+def test_av2_sample_check_names_a_bad_subsample(subsample):
+    with pytest.raises(ValueError, match="subsample must be an integer >= 1"):
+        nsfp_av2_check.av2_sample_check(AV2_LOG, subsample=subsample)
+
+
+@pytest.mark.slow
+def test_av2_sample_pair_every_4th_point_beats_zero_flow():
+    """NSFP pseudo-labels of the real Argoverse 2 sample pair, every 4th point of both sweeps (the challenge's crop,
+    NSFP's defaults but 300 steps), against Argoverse's own flow labels of the same points, in the challenge's units
+    and arithmetic (`ff3d_tf.metrics_av2`: metres per frame, non-ground, 35 m box): foreground-dynamic and three-way
+    EPE clearly below zero flow's. Not issue 18's bar (three-way EPE <= 0.08 m and bucketed normalized dynamic EPE
+    <= 0.6 at full density), which NSFP here does not meet (tools/benchmark_nsfp.py records where it stands). About
+    two minutes on two shared CPU cores.
+
+    Measured (seed 0, CPU, 300 steps, loss still falling: 0.0308 m^2 at 100 steps, 0.0289 at 300): 18,585 points
+    scored (74,289 at full density), 431 of them foreground-dynamic, 3,831 outside NSFP's z crop (flow 0);
+    NSFP / zero flow: foreground-dynamic EPE 0.265 / 0.663 m (0.40x), three-way mean EPE 0.104 / 0.223 m (0.47x),
+    bucketed normalized dynamic EPE 0.850 / 1.0; foreground-static EPE 0.037 / 0.006 m (NSFP worse there)."""
+    options = dataclasses.replace(nsfp_av2_check.AV2_NSFP_OPTIONS, max_iterations=300)
+    result = nsfp_av2_check.av2_sample_check(AV2_LOG, options, subsample=4)
+    got, zero = result["nsfp"], result["zero_flow"]
+    assert result["subsample"] == 4 and result["iterations"] == 300
+    assert 0.24 < result["evaluated_points"] / result["evaluated_points_full_density"] < 0.26  # every 4th point
+    assert result["evaluated_points"] > 15_000 and result["map_ground_agreement_with_is_ground_0"] > 0.999
+    assert got["three_way/fg_dynamic_count"] > 300  # the sample's vehicles move
+    assert got["three_way/fg_dynamic_epe_m"] < 0.6 * zero["three_way/fg_dynamic_epe_m"], (got, zero)
+    assert got["three_way/mean_epe_m"] < 0.7 * zero["three_way/mean_epe_m"], (got, zero)
+    assert got["bucketed/mean_dynamic_norm_epe"] < 0.95, got  # zero flow: 1.0 by definition
