@@ -16,7 +16,7 @@ $(STAMP): setup.py constraints.txt Makefile
 	touch $(STAMP)
 
 test: install
-	$(PY) -m pytest -q -m "not slow" tests
+	$(PY) -m pytest -q -m "not slow" --durations=15 tests
 
 test-slow: install
 	$(PY) -m pytest -q -m slow tests
