@@ -78,12 +78,12 @@ def _options(cores: int):
 
 
 def _child(args, cores: int, job: dict) -> dict:
+    if "av2_logs" in job:
+        return _child_av2(args, cores, job)
     import tensorflow as tf
     from ff3d_tf.config import replace_config
     from ff3d_tf.data import pairs, wod_decode
     from ff3d_tf.training.trainer import training_dataset
-    if "av2_logs" in job:
-        return _child_av2(args, cores, job)
     cfg = _common.load(args)
     options = _options(cores)
     batch = cfg.train.global_batch_size

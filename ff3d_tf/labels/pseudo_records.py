@@ -35,6 +35,11 @@ def output_manifest(manifest: pair_records.Manifest, written_by: str = "") -> pa
     return dataclasses.replace(manifest, extras=extras, written_by=written_by)
 
 
+def _records(path: str, manifest: pair_records.Manifest) -> tf.data.TFRecordDataset:
+    """The serialized records of one records file."""
+    return tf.data.TFRecordDataset(path, compression_type="ZLIB" if manifest.compression == "zlib" else "")
+
+
 def _raw_examples(path: str, manifest: pair_records.Manifest, skip_bad_records: bool, counts: dict):
     """(record index, every stored field of the record as NumPy) of each record of `path`, in file order. A record
     that does not parse raises a FrameDecodeError naming file, record and field (`ff3d_tf.data.wod_errors`), or with
@@ -42,8 +47,7 @@ def _raw_examples(path: str, manifest: pair_records.Manifest, skip_bad_records: 
     there (nothing after it can be read) in the same two ways."""
     extras = tuple(k for k in manifest.extras if k != PSEUDO_KEY)
     parse = pair_records.record_parser(manifest, extras)
-    records = tf.data.TFRecordDataset(path, compression_type="ZLIB" if manifest.compression == "zlib" else "")
-    iterator, index = iter(records), -1
+    iterator, index = iter(_records(path, manifest)), -1
     while True:
         index += 1
         try:
@@ -105,10 +109,10 @@ def _count_records(path: str, manifest: pair_records.Manifest) -> int:
     """Records in the file (for the progress line); the readable ones when its framing is corrupt."""
     count = 0
     try:
-        for _ in tf.data.TFRecordDataset(path, compression_type="ZLIB" if manifest.compression == "zlib" else ""):
+        for _ in _records(path, manifest):
             count += 1
     except tf.errors.DataLossError:
-        pass
+        return count  # the framing breaks here: the records before it are those the job reads
     return count
 
 
