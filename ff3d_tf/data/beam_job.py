@@ -1,9 +1,10 @@
 """The one shape of the project's data jobs: an Apache Beam pipeline with one element per input (a WOD segment, an
 Argoverse 2 log), each writing its output file atomically and skipping outputs that exist, so that a rerun resumes.
 
-`run_per_input(inputs, process, ...)` runs `process(input) -> counts` for every input (DirectRunner unless the standard
-Beam options say otherwise; `--direct_num_workers=N --direct_running_mode=multi_processing` runs N at once), logs
-progress with rate and ETA as inputs finish, and returns the summed counts, also written as JSON into `out_dir`.
+`run_per_input(inputs, process, ...)` runs `process(input) -> counts` for every input (Beam's in-process FnApiRunner
+unless the standard Beam options say otherwise; `--direct_num_workers=N --direct_running_mode=multi_processing` runs N
+at once), logs progress with rate and ETA as inputs finish, and returns the summed counts, also written as JSON into
+`out_dir`.
 `process` must be picklable (a module-level function or a `functools.partial` of one).
 """
 from __future__ import annotations
@@ -75,7 +76,9 @@ def run_per_input(inputs: list[str], process: Callable[[str], dict], out_dir: st
 
     beam_args = list(beam_args or [])
     if not any(a.startswith("--runner") for a in beam_args):
-        beam_args.append("--runner=DirectRunner")  # not Beam's default Prism runner, which downloads a binary
+        # Beam's in-process runner. Not "DirectRunner": since Beam 2.6x it first tries the Prism runner, which
+        # downloads a binary from GitHub (offline: a failed download, logged, then the fallback to this runner).
+        beam_args.append("--runner=FnApiRunner")
     with beam.Pipeline(options=PipelineOptions(beam_args)) as p:
         (p | "Inputs" >> beam.Create(list(inputs))
            | "Reshuffle" >> beam.Reshuffle()
