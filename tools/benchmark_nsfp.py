@@ -73,7 +73,8 @@ def _av2(log_dir: str, subsample: int, max_iterations: int) -> dict:
     def progress(steps, loss):
         print(f"av2 sample: {steps} steps, best loss {loss:.5f}, {time.perf_counter() - start:.0f} s", flush=True)
     av2 = nsfp_av2_check.av2_sample_check(log_dir, options, subsample=subsample, progress=progress)
-    return {"max_iterations": max_iterations, **av2, "wall_s": time.perf_counter() - start,
+    return {"max_iterations": max_iterations, "options": dataclasses.asdict(options), **av2,
+            "wall_s": time.perf_counter() - start,
             "load_average_at_start": load_average,
             "issue_bar_at_most": ISSUE_BAR, "issue_bar_is_for": "every point of the pair (subsample 1)",
             "meets_issue_bar": all(av2["nsfp"][k] <= bar for k, bar in ISSUE_BAR.items())}

@@ -5,7 +5,10 @@
 #   2. the exported training step (forward, loss, backward, Adam; WOD's average 177K points, batch 1 and 8), in ms per
 #      step and per pair: the accelerator's input rate for the README's sizing table;
 #   3. what the device computes on fixed inputs against TensorFlow's results saved at export (flow, loss, gradient
-#      norm), so a wrong GPU lowering shows.
+#      norm), so a wrong GPU lowering shows;
+#   4. when NSFP_DIR holds an export: NSFP's per-pair optimiser (distance grids and Adam steps, issue 18) at 150K and
+#      64K points: seconds per step, per grid, per pair (the issue's target: <= 1 s per pair at 150K points), and its
+#      grids, loss and motion against TensorFlow's.
 #
 #   tools/gpu_check.sh [EXPORT_DIR] [OUT_JSON] [more tools/run_xla.py flags, e.g. --precisions float32]
 #
@@ -13,11 +16,18 @@
 #   python tools/export_xla.py --config configs/fastflow3d_waymo.yaml --points 32000,100000,255000,1000000 \
 #       --precisions float32,tf32,bfloat16 --train_points 177000 --train_batch_sizes 1,8 --reference \
 #       --out .devcarry/xla_paper                                            # random weights, ~35 MB
-# OUT_JSON defaults to $OUT/xla_latency_gpu.json where $OUT is set, else benchmarks/xla_latency_gpu.json; it is
-# rewritten after every artifact. Relative paths are taken from the repository root.
+# NSFP_DIR (default .devcarry/nsfp_xla; skipped when absent) likewise, ~3 minutes on 2 CPU cores (the reference: 50
+# of TensorFlow's steps at 64K points):
+#   python tools/export_nsfp_xla.py --points 150000,64000 --segment_steps 50 --precisions float32,tf32 \
+#       --reference_calls 1 --reference_points 64000 --out .devcarry/nsfp_xla   # synthetic pairs, ~3 MB
+# OUT_JSON defaults to $OUT/xla_latency_gpu.json where $OUT is set, else benchmarks/xla_latency_gpu.json; NSFP's to
+# nsfp_xla_gpu.json beside it. Both are rewritten after every artifact. Relative paths are from the repository root.
 # The GPU machine needs python3 with jax[cuda], flatbuffers and numpy. Environment knobs: PYTHON (python3), RUNS (90)
-# and WARMUP (10) as in the paper's latency appendix, TRAIN_RUNS (30 training steps per artifact), BUDGET_S (420: no
-# artifact starts later; the rest are listed as skipped), LIMIT_S (510: the runner is stopped after this).
+# and WARMUP (10) as in the paper's latency appendix, TRAIN_RUNS (30 training steps per artifact), LIMIT_S (510: the
+# whole script's runners are stopped within this), NSFP_LIMIT_S (180 of it for NSFP when NSFP_DIR is there; the model
+# gets the rest), BUDGET_S (300: no model artifact starts later; the rest are listed as skipped), NSFP_BUDGET_S (140:
+# the same for NSFP entries; float32 first, with the check), NSFP_PAIR_STEPS (500 Adam steps in a timed pair),
+# NSFP_PAIR_RUNS (2).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 EXPORT_DIR=${1:-.devcarry/xla_paper}
@@ -27,12 +37,24 @@ PYTHON=${PYTHON:-python3}
 RUNS=${RUNS:-90}
 WARMUP=${WARMUP:-10}
 TRAIN_RUNS=${TRAIN_RUNS:-30}
-BUDGET_S=${BUDGET_S:-420}
+BUDGET_S=${BUDGET_S:-300}
 LIMIT_S=${LIMIT_S:-510}
+NSFP_DIR=${NSFP_DIR:-.devcarry/nsfp_xla}
+NSFP_JSON=${NSFP_JSON:-$(dirname "$OUT_JSON")/nsfp_xla_gpu.json}
+NSFP_LIMIT_S=${NSFP_LIMIT_S:-180}
+NSFP_BUDGET_S=${NSFP_BUDGET_S:-140}
+NSFP_PAIR_STEPS=${NSFP_PAIR_STEPS:-500}
+NSFP_PAIR_RUNS=${NSFP_PAIR_RUNS:-2}
 
 if [ ! -f "$EXPORT_DIR/manifest.json" ]; then
   echo "gpu_check: no $EXPORT_DIR/manifest.json; make it first with tools/export_xla.py (see the top of $0)" >&2
   exit 2
+fi
+MODEL_LIMIT_S=$LIMIT_S
+if [ -f "$NSFP_DIR/manifest.json" ]; then
+  MODEL_LIMIT_S=$(( LIMIT_S - NSFP_LIMIT_S ))
+else
+  echo "gpu_check: no $NSFP_DIR/manifest.json: NSFP is not timed (tools/export_nsfp_xla.py, see the top of $0)"
 fi
 du -sh "$EXPORT_DIR"
 if command -v nvidia-smi >/dev/null; then
@@ -46,7 +68,15 @@ if device.platform != "gpu":
     print("gpu_check: WARNING no GPU visible to JAX; the timings below are for", device.platform)
 PY
 export PYTHONUNBUFFERED=1
-timeout "$LIMIT_S" "$PYTHON" tools/run_xla.py "$EXPORT_DIR" --runs "$RUNS" --warmup "$WARMUP" --train_runs "$TRAIN_RUNS" \
-  --budget_s "$BUDGET_S" \
-  --out "$OUT_JSON" "$@"
-echo "gpu_check: wrote $OUT_JSON"
+status=0
+timeout "$MODEL_LIMIT_S" "$PYTHON" tools/run_xla.py "$EXPORT_DIR" --runs "$RUNS" --warmup "$WARMUP" \
+  --train_runs "$TRAIN_RUNS" --budget_s "$BUDGET_S" --out "$OUT_JSON" "$@" || status=$?
+echo "gpu_check: model runner exit status $status, results in $OUT_JSON"
+if [ -f "$NSFP_DIR/manifest.json" ]; then
+  du -sh "$NSFP_DIR"
+  timeout "$NSFP_LIMIT_S" "$PYTHON" tools/run_nsfp_xla.py "$NSFP_DIR" --pair_steps "$NSFP_PAIR_STEPS" \
+    --pair_runs "$NSFP_PAIR_RUNS" --budget_s "$NSFP_BUDGET_S" --out "$NSFP_JSON" || nsfp_status=$?
+  echo "gpu_check: NSFP runner exit status ${nsfp_status:-0}, results in $NSFP_JSON"
+  status=$(( status ? status : ${nsfp_status:-0} ))
+fi
+exit "$status"

@@ -26,12 +26,12 @@ weights and point coordinates).
 """
 from __future__ import annotations
 
-import json
 import os
 
 import numpy as np
 
-from ff3d_tf import bench
+from ff3d_tf import bench, xla_program
+from ff3d_tf.xla_program import ExportFormatError  # noqa: F401  (this module's callers catch it from here)
 
 FORMAT = "ff3d_tf.xla_forward/1"
 MANIFEST_NAME = "manifest.json"
@@ -39,10 +39,6 @@ WEIGHTS_NAME = "weights.npz"
 REFERENCE_NAME = "reference.npz"
 PRECISIONS = ("float32", "tf32", "bfloat16")
 TRAIN_LABEL_KEYS = ("flow_mps_t0", "class_id_t0")
-
-
-class ExportFormatError(ValueError):
-    """An export directory that does not hold what its manifest says (the message names the file and field)."""
 
 
 def artifact_name(padded_points: int, precision: str) -> str:
@@ -54,20 +50,8 @@ def train_artifact_name(batch_size: int, padded_points: int, precision: str) -> 
 
 
 def read_manifest(export_dir: str) -> dict:
-    path = os.path.join(export_dir, MANIFEST_NAME)
-    try:
-        with open(path) as f:
-            manifest = json.load(f)
-    except FileNotFoundError as e:
-        raise ExportFormatError(f"{path}: no manifest (is {export_dir} a tools/export_xla.py output?)") from e
-    except json.JSONDecodeError as e:
-        raise ExportFormatError(f"{path}: not valid JSON: {e}") from e
-    if manifest.get("format") != FORMAT:
-        raise ExportFormatError(f"{path}: field format is {manifest.get('format')!r}, expected {FORMAT!r}")
-    for key in ("weights", "input_keys", "output_keys", "artifacts", "grid"):
-        if key not in manifest:
-            raise ExportFormatError(f"{path}: field {key} missing")
-    return manifest
+    return xla_program.read_manifest(export_dir, MANIFEST_NAME, FORMAT, ("weights", "input_keys", "output_keys",
+                                                                         "artifacts", "grid"), "tools/export_xla.py")
 
 
 def load_weights(export_dir: str, manifest: dict) -> list[np.ndarray]:
@@ -88,14 +72,7 @@ def load_weights(export_dir: str, manifest: dict) -> list[np.ndarray]:
 
 
 def _load_program(export_dir: str, entry: dict, num_in: int, num_out: int, expected: str):
-    from jax import export
-    path = os.path.join(export_dir, entry["file"])
-    with open(path, "rb") as f:
-        exported = export.deserialize(bytearray(f.read()))
-    if len(exported.in_avals) != num_in or len(exported.out_avals) != num_out:
-        raise ExportFormatError(f"{path}: takes {len(exported.in_avals)} arguments and returns "
-                                f"{len(exported.out_avals)}, expected {expected}")
-    return exported
+    return xla_program.load_program(os.path.join(export_dir, entry["file"]), num_in, num_out, expected)
 
 
 def load_forward(export_dir: str, entry: dict, num_weights: int):
@@ -141,8 +118,7 @@ class CompiledForward:
         import jax
         self.device = jax.devices()[0]
         self.weights = [jax.device_put(w, self.device) for w in weights]
-        avals = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exported.in_avals]
-        self.compiled, self.compile_s = bench.elapsed(lambda: jax.jit(exported.call).lower(*avals).compile())
+        self.compiled, self.compile_s = xla_program.compile_program(exported)
 
     def on_device(self, inputs: list[np.ndarray]):
         import jax
@@ -167,9 +143,7 @@ class CompiledTrainStep:
         self.device = jax.devices()[0]
         self.num_state = len(state)
         self.state = [jax.device_put(x, self.device) for x in state]
-        avals = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exported.in_avals]
-        donated = jax.jit(exported.call, donate_argnums=tuple(range(self.num_state)))
-        self.compiled, self.compile_s = bench.elapsed(lambda: donated.lower(*avals).compile())
+        self.compiled, self.compile_s = xla_program.compile_program(exported, range(self.num_state))
 
     def on_device(self, batch: list[np.ndarray]):
         import jax

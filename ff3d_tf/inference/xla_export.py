@@ -10,7 +10,8 @@ only, e.g. on a GPU machine) compiles and runs it: `ff3d_tf.inference.xla_artifa
      in which nothing depends on the device.
   2. jaxlib converts the HLO to StableHLO; a JAX primitive whose lowering inlines that module makes it a JAX
      function, and `jax.export` lowers it for the platforms asked (CPU and CUDA, on a machine without a GPU) and
-     serialises it with StableHLO's versioned portable format.
+     serialises it with StableHLO's versioned portable format (both steps: `ff3d_tf.xla_program`, which NSFP's export
+     shares).
 
 The training step is stateless: it takes the weights, the BatchNorm statistics, Adam's slots and iteration count and
 a labelled batch, and returns their new values with the loss and the gradients' global norm (`train_step_fn`): a
@@ -21,7 +22,6 @@ DEFAULT when enabled), so each precision is traced with the setting it names (se
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import os
@@ -30,7 +30,7 @@ from typing import Sequence
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf import internals
+from ff3d_tf import xla_program
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data.pairs import bucket_size
 from ff3d_tf.inference import xla_artifact
@@ -40,7 +40,7 @@ from ff3d_tf.schema import MODEL_INPUT_KEYS
 
 OUTPUT_KEYS = ("flow_mps", "point_valid")
 TRAIN_LABEL_KEYS = xla_artifact.TRAIN_LABEL_KEYS
-PLATFORMS = ("cpu", "cuda")
+PLATFORMS = xla_program.PLATFORMS
 
 
 def input_specs(batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
@@ -63,16 +63,6 @@ def model_weights(model) -> list:
     return list(model.trainable_variables) + list(model.non_trainable_variables)
 
 
-@contextlib.contextmanager
-def _tensor_float_32(enabled: bool):
-    previous = tf.config.experimental.tensor_float_32_execution_enabled()
-    tf.config.experimental.enable_tensor_float_32_execution(enabled)
-    try:
-        yield
-    finally:
-        tf.config.experimental.enable_tensor_float_32_execution(previous)
-
-
 def forward_hlo(model, batch_size: int, padded_points: int, tf32: bool = False) -> bytes:
     """Serialized pre-optimisation HLO of `model`'s inference forward for one bucket, weights as arguments.
 
@@ -89,9 +79,7 @@ def forward_hlo(model, batch_size: int, padded_points: int, tf32: bool = False) 
         return tuple(outputs[k] for k in OUTPUT_KEYS)
 
     specs = [tf.TensorSpec(v.shape, v.dtype) for v in model_weights(model)] + input_specs(batch_size, padded_points)
-    with _tensor_float_32(tf32):
-        # A fresh tf.function per call: the TF32 setting is read when the function is converted to HLO.
-        return tf.function(forward, jit_compile=True).experimental_get_compiler_ir(*specs)(stage="hlo_serialized")
+    return xla_program.traced_hlo(forward, specs, tf32)
 
 
 def train_step_fn(cfg: ExperimentConfig, model, batch_size: int):
@@ -130,10 +118,8 @@ def train_step_specs(model, batch_size: int, padded_points: int) -> list[tf.Tens
 
 def train_step_hlo(cfg: ExperimentConfig, model, batch_size: int, padded_points: int, tf32: bool = False) -> bytes:
     """Serialized pre-optimisation HLO of `train_step_fn` for one bucket (arguments and results as documented there)."""
-    specs = train_step_specs(model, batch_size, padded_points)
-    with _tensor_float_32(tf32):
-        return tf.function(train_step_fn(cfg, model, batch_size), jit_compile=True).experimental_get_compiler_ir(
-            *specs)(stage="hlo_serialized")
+    return xla_program.traced_hlo(train_step_fn(cfg, model, batch_size),
+                                  train_step_specs(model, batch_size, padded_points), tf32)
 
 
 def _tracing_model(cfg: ExperimentConfig, precision: str, model):
@@ -147,14 +133,6 @@ def _tracing_model(cfg: ExperimentConfig, precision: str, model):
         raise ValueError(f"model.mixed_precision={mixed} changes the weights' shapes or dtypes; cannot export "
                          f"precision {precision} with the same weights")
     return other
-
-
-def _write_artifact(out_dir: str, name: str, hlo: bytes, platforms, log) -> int:
-    blob = internals.hlo_to_jax_exported(hlo, platforms).serialize()
-    with open(os.path.join(out_dir, name), "wb") as f:
-        f.write(blob)
-    log(f"{name}: {len(blob) / 1e3:.0f} kB")
-    return len(blob)
 
 
 def _reference(cfg, model, manifest: dict, rng: np.random.Generator) -> dict:
@@ -174,7 +152,7 @@ def _reference(cfg, model, manifest: dict, rng: np.random.Generator) -> dict:
         b, p = train["batch_size"], train["padded_points"]
         batch = xla_artifact.random_inputs(manifest, train, rng) + xla_artifact.random_labels(train, rng)
         state = xla_artifact.initial_train_state([v.numpy() for v in model_weights(model)], manifest)
-        with _tensor_float_32(False):
+        with xla_program.tensor_float_32(False):
             results = tf.function(train_step_fn(cfg, model, b), jit_compile=True)(*state, *batch)
         arrays.update({f"train/{k}": a for k, a in zip(MODEL_INPUT_KEYS + TRAIN_LABEL_KEYS, batch)})
         arrays["train/out/loss"], arrays["train/out/grad_norm"] = results[-2].numpy(), results[-1].numpy()
@@ -228,7 +206,7 @@ def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir:
             padded = bucket_size(n, cfg.data.point_bucket_base)
             name = xla_artifact.artifact_name(padded, precision)
             if name not in written:
-                written[name] = _write_artifact(out_dir, name, forward_hlo(tracer, batch_size, padded,
+                written[name] = xla_program.write_program(out_dir, name, forward_hlo(tracer, batch_size, padded,
                                                                            tf32=precision == "tf32"), platforms, log)
             manifest["artifacts"].append({"points": int(n), "padded_points": padded, "batch_size": batch_size,
                                           "precision": precision, "file": name, "bytes": written[name]})
@@ -240,7 +218,7 @@ def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir:
                 name = xla_artifact.train_artifact_name(b, padded, precision)
                 if name not in written:
                     hlo = train_step_hlo(cfg, tracer, b, padded, tf32=precision == "tf32")
-                    written[name] = _write_artifact(out_dir, name, hlo, platforms, log)
+                    written[name] = xla_program.write_program(out_dir, name, hlo, platforms, log)
                 manifest["train_artifacts"].append({"points": int(n), "padded_points": padded, "batch_size": int(b),
                                                     "precision": precision, "file": name, "bytes": written[name]})
     if reference:

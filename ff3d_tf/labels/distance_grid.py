@@ -251,9 +251,22 @@ def chamfer_loss(query_xyz, query_mask, target_xyz, target_mask, grid: DistanceG
         distance_m = exact_nearest_distance_m(query_xyz, target_xyz, target_mask)
     else:
         distance_m = read_distance_grid(grid, query_xyz)
+    return _mean_distance(distance_m, query_mask, squared, truncate_m)
+
+
+def reverse_chamfer_loss(target_xyz, target_mask, moved_xyz, nearest_moved, squared: bool = False, truncate_m=None):
+    """The other side of the Chamfer distance: mean over valid target points of the distance (m; `squared`: its
+    square) to the moved point `nearest_moved` [M] int32 names (its nearest valid moved point, `nearest_index`, found
+    by the caller, possibly some steps ago), truncated as `chamfer_loss`; differentiable in `moved_xyz`."""
+    difference = target_xyz - tf.gather(moved_xyz, nearest_moved)
+    distance_m = tf.sqrt(tf.maximum(tf.reduce_sum(difference ** 2, -1), _SQRT_FLOOR))
+    return _mean_distance(distance_m, target_mask, squared, truncate_m)
+
+
+def _mean_distance(distance_m, mask, squared: bool, truncate_m):
     if truncate_m is not None:
         distance_m = tf.where(distance_m < truncate_m, distance_m, 0.0)
     if squared:
         distance_m = tf.square(distance_m)
-    weight = tf.cast(query_mask, tf.float32)
+    weight = tf.cast(mask, tf.float32)
     return tf.reduce_sum(distance_m * weight) / tf.maximum(tf.reduce_sum(weight), 1.0)

@@ -15,9 +15,15 @@ neighbours instead, for checking). Ground removal and the range crop (ZeroFlow's
 Convention (the project's labels, `ff3d_tf.labels.box_flow`): the forward MLP gives `motion_m`, the displacement of
 each t0 point from t-1 to t0 in metres in the t0 vehicle frame; `points_xyz_t0 - motion_m` is where the point was at
 t-1 and is pulled onto the ego-compensated t-1 cloud `points_xyz_tm1_in_t0`; `flow_mps_t0 = motion_m / dt_s`. The
-cycle term moves that moved-back cloud forward again with the backward MLP and pulls it onto the t0 cloud. Both terms
-are one-sided Chamfer distances (mean squared distance of each moved point to its nearest point of the fixed cloud,
-m^2): only a fixed cloud has a distance transform.
+cycle term moves that moved-back cloud forward again with the backward MLP and pulls it onto the t0 cloud. Each term's
+moved-to-fixed side reads the fixed cloud's distance transform (mean squared distance of each moved point to its
+nearest fixed point, m^2). NSFP's Chamfer is two-sided: also each fixed point to its nearest moved point, which
+forbids many moved points collapsing onto a few fixed ones. The moved cloud changes every step, so that side has no
+precomputed transform: with `reverse_every` = k > 0 its correspondences (each fixed point's nearest moved point) are
+found exactly (`reverse_correspondences`, O(N*M)) at every k-th step and held in between, the distance to the named
+point differentiable (`distance_grid.reverse_chamfer_loss`). `fit_every` = k > 1 fits the MLPs to every k-th kept
+point of each cloud and evaluates the best step's forward MLP (the prior is a continuous function of xyz) at every
+kept t0 point: k times fewer points a step and k^2 times less nearest-neighbour search.
 
 Why squared (NSFP's choice, the default; `squared_chamfer=False` gives mean distances in m): at the start both MLPs
 output ~0, where the cycle term is exactly 0 and holds the forward motion back until the backward MLP has learnt to
@@ -44,7 +50,8 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf.data.pairs import bucket_size
-from ff3d_tf.labels.distance_grid import DistanceGrid, build_distance_grid, chamfer_loss, grid_geometry
+from ff3d_tf.labels.distance_grid import (DistanceGrid, build_distance_grid, chamfer_loss, grid_geometry,
+                                          nearest_index, reverse_chamfer_loss)
 from ff3d_tf.model.step import adam_apply
 
 ADAM_BETA_1, ADAM_BETA_2, ADAM_EPSILON = 0.9, 0.999, 1e-8  # PyTorch's Adam defaults (NSFP's optimiser)
@@ -53,8 +60,9 @@ NSFP_TRUNCATE_M = math.sqrt(2.0)  # NSFP's truncated Chamfer: squared nearest di
 
 @dataclasses.dataclass(frozen=True)
 class NsfpOptions:
-    """Options of `nsfp_flow`. The objective and `min_delta` are in m^2 (mean squared one-sided Chamfer distance;
-    m with `squared_chamfer=False`)."""
+    """Options of `nsfp_flow`, by default NSFP's (but one-sided and untruncated; `MEASURED_FIT_OPTIONS` holds the
+    settings measured best on the Argoverse 2 sample pair). The objective and `min_delta` are in m^2 (mean
+    squared Chamfer distances; m with `squared_chamfer=False`)."""
     hidden_layers: int = 8  # NSFP: 8 hidden layers of 128, ReLU
     hidden_units: int = 128
     learning_rate: float = 8e-3  # Adam (NSFP and ZeroFlow: 0.008)
@@ -64,6 +72,9 @@ class NsfpOptions:
     patience: int = 100  # stop after this many steps without the loss improving by more than min_delta
     min_delta: float = 1e-4  # in the objective's units (m^2; m with squared_chamfer=False)
     backward_cycle: bool = True  # NSFP's backward-flow term
+    reverse_every: int = 0  # two-sided Chamfer (NSFP): each fixed point's nearest moved point, exact, found again every
+    # this many steps (O(N*M) each time) and held in between; 0: one-sided (moved points to the fixed cloud only)
+    fit_every: int = 1  # fit on every k-th kept point of both clouds, then evaluate the fitted MLP at every kept point
     exact_chamfer: bool = False  # exact nearest neighbours (O(N*M) a step; for checking) instead of the grid
     squared_chamfer: bool = True  # mean squared distance (NSFP's Chamfer; see the module docstring), else mean distance
     truncate_m: float | None = None  # points this far or farther from the target count 0 (NSFP: NSFP_TRUNCATE_M)
@@ -88,6 +99,10 @@ class NsfpOptions:
         if isinstance(self.warmup_iterations, bool) or not isinstance(self.warmup_iterations, int) \
                 or self.warmup_iterations < 0:
             raise ValueError(f"NsfpOptions.warmup_iterations: must be an integer >= 0, got {self.warmup_iterations!r}")
+        for name in ("reverse_every", "fit_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < (name == "fit_every"):
+                raise ValueError(f"NsfpOptions.{name}: must be an integer >= {int(name == 'fit_every')}, got {value!r}")
         for name in ("learning_rate", "grid_cell_m"):
             if not _is_real(getattr(self, name)) or not getattr(self, name) > 0:
                 raise ValueError(f"NsfpOptions.{name}: must be a finite number > 0, got {getattr(self, name)!r}")
@@ -115,6 +130,14 @@ class NsfpOptions:
 
 def _is_real(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+# The fit measured best on the Argoverse 2 sample pair (README, "Label-free training"; `nsfp_av2_check`): NSFP's
+# two-sided Chamfer (reverse correspondences found every 5 steps), a learning rate of 0.002 (NSFP: 0.008), no weight
+# decay (NSFP: 1e-4), early stopping at 1e-5 m^2 (NSFP: 1e-4; a dense pair's mean squared distances are small), fitted
+# to every 4th point (full density: three-way EPE 0.065 m, bucketed normalized dynamic EPE 0.566, 716 steps). The
+# pseudo-label job's defaults; `NsfpOptions()` itself keeps NSFP's published settings.
+MEASURED_FIT_OPTIONS = NsfpOptions(learning_rate=2e-3, weight_decay=0.0, reverse_every=5, min_delta=1e-5, fit_every=4)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,16 +174,36 @@ def mlp(params, xyz):
 
 
 def nsfp_objective(forward, backward, points_xyz_t0, mask_t0, points_xyz_tm1, mask_tm1, grid_tm1, grid_t0,
-                   exact: bool, squared: bool = False, truncate_m=None):
+                   exact: bool, squared: bool = False, truncate_m=None, reverse_index=None):
     """(objective in m, or m^2 when `squared`; motion_m [B,3]): Chamfer of the moved-back t0 cloud to the t-1 cloud,
-    plus (when `backward` is not None) Chamfer of that cloud moved forward by the backward MLP to the t0 cloud."""
+    plus (when `backward` is not None) Chamfer of that cloud moved forward by the backward MLP to the t0 cloud.
+    `reverse_index` ([2,B] int32, `reverse_correspondences`) makes both terms two-sided (NSFP): row 0 names each t-1
+    point's nearest moved-back point, row 1 each t0 point's nearest moved-forward point."""
     motion_m = mlp(forward, points_xyz_t0)
     moved_back_xyz = points_xyz_t0 - motion_m  # where each t0 point was at t-1
     loss = chamfer_loss(moved_back_xyz, mask_t0, points_xyz_tm1, mask_tm1, grid_tm1, exact, squared, truncate_m)
+    if reverse_index is not None:
+        loss += reverse_chamfer_loss(points_xyz_tm1, mask_tm1, moved_back_xyz, reverse_index[0], squared, truncate_m)
     if backward is not None:
         moved_forward_xyz = moved_back_xyz + mlp(backward, moved_back_xyz)
         loss += chamfer_loss(moved_forward_xyz, mask_t0, points_xyz_t0, mask_t0, grid_t0, exact, squared, truncate_m)
+        if reverse_index is not None:
+            loss += reverse_chamfer_loss(points_xyz_t0, mask_t0, moved_forward_xyz, reverse_index[1], squared,
+                                         truncate_m)
     return loss, motion_m
+
+
+def reverse_correspondences(forward, backward, points_xyz_t0, mask_t0, points_xyz_tm1):
+    """[2,B] int32 for `nsfp_objective`'s `reverse_index`, by brute force (`nearest_index`): each t-1 point's nearest
+    valid moved-back t0 point and each t0 point's nearest valid moved-forward point (row 1 zeros without
+    `backward`)."""
+    moved_back_xyz = points_xyz_t0 - mlp(forward, points_xyz_t0)
+    rows = [nearest_index(points_xyz_tm1, moved_back_xyz, mask_t0)]
+    if backward is not None:
+        rows.append(nearest_index(points_xyz_t0, moved_back_xyz + mlp(backward, moved_back_xyz), mask_t0))
+    else:
+        rows.append(tf.zeros_like(rows[0]))
+    return tf.stack(rows)
 
 
 class _FitState(NamedTuple):
@@ -172,23 +215,36 @@ class _FitState(NamedTuple):
     best_motion: tf.Tensor
     reference_loss: tf.Tensor  # early stopping: the loss at the last improvement by more than min_delta
     stale: tf.Tensor  # steps since then
+    reverse_index: tf.Tensor  # [2,B] int32: the two-sided terms' correspondences (reverse_every > 0), else unused
+    best_params: list  # the parameters of best_loss
 
 
 @tf.function(jit_compile=True)
 def _fit_segment(state: _FitState, clouds, grids, hyper, num_forward: int, exact: bool, squared: bool,
-                 segment: int):
+                 segment: int, reverse_every: int = 0):
     """Up to `segment` Adam steps on the NSFP objective in one in-graph loop, stopping early (patience) or at
-    max_iterations; the loss of a step is that of the parameters before its update."""
+    max_iterations; the loss of a step is that of the parameters before its update. `reverse_every` > 0: two-sided
+    Chamfer, its correspondences found again at every step that is a multiple of it."""
     learning_rate, warmup, weight_decay, min_delta, patience, max_iterations, truncate_m = hyper
     end = tf.minimum(state.step + segment, max_iterations)
 
-    def objective(p):
-        return nsfp_objective(p[:num_forward], p[num_forward:] or None, *clouds, *grids, exact, squared, truncate_m)
+    def objective(p, reverse_index):
+        return nsfp_objective(p[:num_forward], p[num_forward:] or None, *clouds, *grids, exact, squared, truncate_m,
+                              reverse_index)
+
+    def correspondences(s: _FitState):
+        if not reverse_every:
+            return s.reverse_index
+        return tf.cond(tf.equal(s.step % reverse_every, 0),
+                       lambda: reverse_correspondences(s.params[:num_forward], s.params[num_forward:] or None,
+                                                       clouds[0], clouds[1], clouds[2]),
+                       lambda: s.reverse_index)
 
     def body(s: _FitState):
+        reverse_index = correspondences(s)
         with tf.GradientTape() as tape:
             tape.watch(s.params)
-            loss, motion_m = objective(s.params)
+            loss, motion_m = objective(s.params, reverse_index if reverse_every else None)
         grads = tape.gradient(loss, s.params, unconnected_gradients=tf.UnconnectedGradients.ZERO)
         grads = [g + weight_decay * p for g, p in zip(grads, s.params)]
         best = loss < s.best_loss
@@ -199,7 +255,8 @@ def _fit_segment(state: _FitState, clouds, grids, hyper, num_forward: int, exact
                                             ADAM_BETA_1, ADAM_BETA_2, ADAM_EPSILON)
         return _FitState(s.step + 1, params, adam_m, adam_v, tf.where(best, loss, s.best_loss),
                          tf.where(best, motion_m, s.best_motion), tf.where(improved, loss, s.reference_loss),
-                         tf.where(improved, 0, s.stale + 1))
+                         tf.where(improved, 0, s.stale + 1), reverse_index,
+                         [tf.where(best, p, b) for p, b in zip(s.params, s.best_params)])
 
     def running(s: _FitState):
         return (s.step < end) & (s.stale < patience)
@@ -260,7 +317,8 @@ def nsfp_flow(points_xyz_t0, points_xyz_tm1_in_t0, dt_s: float, options: NsfpOpt
     ego-compensated t-1 cloud [M,3] (t0 vehicle frame). `keep_t0` / `keep_tm1` ([N] / [M] bool, optional): points to
     use besides the options' ground removal and crop (e.g. a map's ground labels). Points not used get flow 0 and
     `valid_t0` False, as do all points when either kept cloud is empty. `progress(steps, best_loss)` is called
-    after every `segment_iterations` steps."""
+    after every `segment_iterations` steps. With `fit_every` = k > 1 the MLPs are fitted to every k-th kept point of
+    each cloud and the forward MLP of the best step gives the flow of every kept t0 point."""
     xyz_t0 = _checked_cloud(points_xyz_t0, "points_xyz_t0")
     xyz_tm1 = _checked_cloud(points_xyz_tm1_in_t0, "points_xyz_tm1_in_t0")
     if not (_is_real(dt_s) and dt_s > 0):
@@ -277,21 +335,39 @@ def nsfp_flow(points_xyz_t0, points_xyz_tm1_in_t0, dt_s: float, options: NsfpOpt
     # Centred coordinates: the MLP sees the scene around 0, and the nearest-neighbour matmul keeps its precision.
     centre_m = (origin_m + (dims - 1) * np.float32(options.grid_cell_m) / 2).astype(np.float32)
     kept_t0, kept_tm1, origin_m = kept_t0 - centre_m, kept_tm1 - centre_m, origin_m - centre_m
-    size = bucket_size(max(len(kept_t0), len(kept_tm1)), options.point_bucket_base)
-    padded_t0, padded_tm1 = _padded(kept_t0, size), _padded(kept_tm1, size)
+    fit_t0, fit_tm1 = kept_t0[:: options.fit_every], kept_tm1[:: options.fit_every]
+    size = bucket_size(max(len(fit_t0), len(fit_tm1)), options.point_bucket_base)
+    padded_t0, padded_tm1 = _padded(fit_t0, size), _padded(fit_tm1, size)
     start = time.perf_counter()
+    grids = _grids(padded_t0, padded_tm1, origin_m, dims, options)
+    grid_s = time.perf_counter() - start if not options.exact_chamfer else 0.0
+    start = time.perf_counter()
+    state = _fit(padded_t0, padded_tm1, grids, size, options, progress)
+    if options.fit_every == 1:
+        motion_m = state.best_motion.numpy()[: len(kept_t0)]
+    else:
+        motion_m = _evaluate_mlp(state.best_params[: 2 * (options.hidden_layers + 1)], kept_t0)
+    flow_mps[keep_t0] = motion_m / np.float32(dt_s)
+    return NsfpResult(flow_mps, keep_t0, int(state.step), float(state.best_loss), grid_s, time.perf_counter() - start)
+
+
+def _grids(padded_t0, padded_tm1, origin_m, dims, options: NsfpOptions) -> tuple[DistanceGrid, DistanceGrid]:
+    """(t-1 grid, t0 grid) of the fit: distance transforms of the padded clouds, or placeholders with exact_chamfer
+    (the t-1 grid twice without the cycle term)."""
     if options.exact_chamfer:
         placeholder = DistanceGrid(tf.zeros([8]), tf.zeros([3]), tf.constant([2, 2, 2]), tf.constant(1.0))
-        grids = (placeholder, placeholder)
-    else:
-        def grid(padded):
-            return build_distance_grid(*padded, origin_m, dims, options.grid_cell_m, options.band_cells,
-                                       options.coarse_band_cells)
-        grid_tm1 = grid(padded_tm1)
-        grids = (grid_tm1, grid(padded_t0) if options.backward_cycle else grid_tm1)
-    grid_s = time.perf_counter() - start if not options.exact_chamfer else 0.0
+        return placeholder, placeholder
+
+    def grid(padded):
+        return build_distance_grid(*padded, origin_m, dims, options.grid_cell_m, options.band_cells,
+                                   options.coarse_band_cells)
+    grid_tm1 = grid(padded_tm1)
+    return grid_tm1, grid(padded_t0) if options.backward_cycle else grid_tm1
+
+
+def _fit(padded_t0, padded_tm1, grids, size: int, options: NsfpOptions, progress) -> _FitState:
+    """The fit's final state: compiled segments of `segment_iterations` steps until early stopping or the cap."""
     (t0, mask_t0), (tm1, mask_tm1) = [tuple(map(tf.constant, padded)) for padded in (padded_t0, padded_tm1)]
-    start = time.perf_counter()
     state = initial_fit_state(options, size)
     hyper = (tf.constant(options.learning_rate, tf.float32), tf.constant(options.warmup_iterations),
              tf.constant(options.weight_decay, tf.float32),
@@ -301,15 +377,30 @@ def nsfp_flow(points_xyz_t0, points_xyz_tm1_in_t0, dt_s: float, options: NsfpOpt
     num_forward = 2 * (options.hidden_layers + 1)
     while True:
         state = _fit_segment(state, (t0, mask_t0, tm1, mask_tm1), grids, hyper, num_forward, options.exact_chamfer,
-                             options.squared_chamfer, options.segment_iterations)
+                             options.squared_chamfer, options.segment_iterations, options.reverse_every)
         steps = int(state.step)
         if progress is not None:
             progress(steps, float(state.best_loss))
         if steps >= options.max_iterations or int(state.stale) >= options.patience:
-            break
-    motion_m = state.best_motion.numpy()[: len(kept_t0)]
-    flow_mps[keep_t0] = motion_m / np.float32(dt_s)
-    return NsfpResult(flow_mps, keep_t0, steps, float(state.best_loss), grid_s, time.perf_counter() - start)
+            return state
+
+
+_EVALUATE_CHUNK = 1 << 16  # points per call of the fitted MLP in `_evaluate_mlp`
+
+
+@tf.function(jit_compile=True, reduce_retracing=True)
+def _mlp_compiled(params, xyz):
+    return mlp(params, xyz)
+
+
+def _evaluate_mlp(params, points_xyz: np.ndarray) -> np.ndarray:
+    """[P,3] the MLP at every point, in bucket-padded chunks (few compiled shapes)."""
+    out = []
+    for begin in range(0, len(points_xyz), _EVALUATE_CHUNK):
+        chunk = points_xyz[begin: begin + _EVALUATE_CHUNK]
+        padded, _ = _padded(chunk, bucket_size(len(chunk), 1024))
+        out.append(_mlp_compiled(params, tf.constant(padded)).numpy()[: len(chunk)])
+    return np.concatenate(out) if out else np.zeros((0, 3), np.float32)
 
 
 def initial_fit_state(options: NsfpOptions, num_points: int) -> _FitState:
@@ -319,4 +410,5 @@ def initial_fit_state(options: NsfpOptions, num_points: int) -> _FitState:
         params += init_mlp(options.seed, 1, options.hidden_layers, options.hidden_units)
     zeros = [tf.zeros_like(p) for p in params]
     return _FitState(tf.constant(0), params, zeros, list(zeros), tf.constant(np.inf, tf.float32),
-                     tf.zeros([num_points, 3]), tf.constant(np.inf, tf.float32), tf.constant(0))
+                     tf.zeros([num_points, 3]), tf.constant(np.inf, tf.float32), tf.constant(0),
+                     tf.zeros([2, num_points], tf.int32), list(params))

@@ -1,9 +1,10 @@
 """The NSFP pseudo-labels (`ff3d_tf.labels.nsfp`) of an Argoverse 2 log's first pair scored against Argoverse's own flow
 labels of it by the 2024 challenge's arithmetic (`ff3d_tf.metrics_av2`), beside zero flow: `av2_sample_check`, the
-options it uses (`AV2_NSFP_OPTIONS`: NSFP's defaults with the challenge's 35 m box and ZeroFlow's z crop) and the
-label columns it reads."""
+options it uses (`AV2_NSFP_OPTIONS`: the challenge's 35 m box, ZeroFlow's z crop and the fit settings measured best
+on the sample pair) and the label columns it reads."""
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import Callable
 
@@ -11,9 +12,11 @@ import numpy as np
 
 from ff3d_tf import geometry, metrics_av2
 from ff3d_tf.data import argoverse2
-from ff3d_tf.labels.nsfp import NsfpOptions, keep_mask, nsfp_flow
+from ff3d_tf.labels.nsfp import MEASURED_FIT_OPTIONS, NsfpOptions, keep_mask, nsfp_flow
 
-AV2_NSFP_OPTIONS = NsfpOptions(crop_xy_half_extent_m=metrics_av2.MAX_DISTANCE_M, crop_z_range_m=(-3.0, 3.0))
+# The challenge's 35 m box and ZeroFlow's z crop, with the fit measured best on this pair.
+AV2_NSFP_OPTIONS = dataclasses.replace(MEASURED_FIT_OPTIONS, crop_xy_half_extent_m=metrics_av2.MAX_DISTANCE_M,
+                                       crop_z_range_m=(-3.0, 3.0))
 
 
 def _av2_label_columns(log_dir: str, num_points: int) -> dict[str, np.ndarray]:

@@ -80,3 +80,11 @@ def test_annotate_flow_bad_arguments_fail_before_work(tiny_segment, tmp_path):
     from ff3d_tf.schema import ALL_LASERS, lidar_selection_problem
     assert out.returncode != 0 and lidar_selection_problem(ALL_LASERS, (3,)) in out.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_pseudo_label_bad_fit_option_fails_before_work(tmp_path):
+    out = subprocess.run([sys.executable, "tools/pseudo_label.py", "--input", str(tmp_path), "--out_dir",
+                          str(tmp_path / "p"), "--reverse_every", "-1"], cwd=ROOT, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode != 0 and "NsfpOptions.reverse_every: must be an integer >= 0" in out.stderr, out.stderr
+    assert not (tmp_path / "p").exists()

@@ -1,0 +1,61 @@
+"""Export NSFP's per-pair optimiser (distance grids and Adam steps of ff3d_tf.labels.nsfp) as portable XLA programs,
+one set per point bucket, for CPU and CUDA; optionally time them here against TensorFlow's own.
+
+python tools/export_nsfp_xla.py --out DIR [--points 64000,150000] [--segment_steps 50] [--precisions float32,tf32]
+    [--reference_calls 1 --reference_points 64000] [--crop_m 35] [--hidden_layers 8 --hidden_units 128]
+    [--compare_out J [--compare_rounds 2]]
+The pairs are synthetic (ff3d_tf.labels.nsfp_program.synthetic_pair: uniform clouds in the crop box, a box moving by a
+known motion) and regenerated from a seed by the runner, so only programs and initial parameters are written.
+--reference_calls N also saves TensorFlow's grids and fit after N segments on one pair, which the runner compares
+with the device's. --compare_out times, in this process, the exported float32 programs with JAX on this machine's
+CPU against TensorFlow's fit and grid build on the first entry's pair (JSON). Needs the `xla` extra; run the result
+where only JAX is installed with `python tools/run_nsfp_xla.py DIR`.
+"""
+import json
+import os
+
+import _common
+
+from ff3d_tf.labels import nsfp_program
+from ff3d_tf.labels.nsfp import NsfpOptions
+from ff3d_tf.labels.nsfp_export import compare_on_this_machine, export_nsfp
+
+
+def main():
+    p = _common.parser(__doc__)
+    p.add_argument("--out", required=True)
+    p.add_argument("--points", default="64000,150000", help="cloud sizes (both clouds of a pair), comma-separated")
+    p.add_argument("--segment_steps", type=int, default=50, help="Adam steps per call of the fit program")
+    p.add_argument("--precisions", default="float32", help=f"of {', '.join(nsfp_program.PRECISIONS)}")
+    p.add_argument("--platforms", default="cpu,cuda")
+    p.add_argument("--reference_calls", type=int, default=0, help="segments of TensorFlow's reference fit")
+    p.add_argument("--reference_points", type=int, default=None, help="the reference pair's size (default: first)")
+    p.add_argument("--crop_m", type=float, default=35.0, help="keep |x|, |y| <= this (m): the grid's x-y extent")
+    p.add_argument("--grid_cell_m", type=float, default=NsfpOptions.grid_cell_m)
+    p.add_argument("--hidden_layers", type=int, default=NsfpOptions.hidden_layers)
+    p.add_argument("--hidden_units", type=int, default=NsfpOptions.hidden_units)
+    p.add_argument("--seed", type=int, default=0, help="MLP initialisation")
+    p.add_argument("--compare_out", default=None, help="JSON of JAX-vs-TensorFlow seconds per step on this CPU")
+    p.add_argument("--compare_rounds", type=int, default=2)
+    args = p.parse_args()
+    try:
+        points = [int(v) for v in args.points.split(",") if v]
+        options = NsfpOptions(hidden_layers=args.hidden_layers, hidden_units=args.hidden_units,
+                              grid_cell_m=args.grid_cell_m, crop_xy_half_extent_m=args.crop_m,
+                              crop_z_range_m=(-3.0, 3.0), seed=args.seed)
+        manifest = export_nsfp(options, points, args.out, args.segment_steps, args.precisions.split(","),
+                               args.platforms.split(","), args.reference_calls, args.reference_points)
+    except ValueError as e:
+        p.error(str(e))
+    size = sum(os.path.getsize(os.path.join(args.out, n)) for n in os.listdir(args.out))
+    print(f"wrote {len(manifest['entries'])} NSFP entries to {args.out} ({size / 2 ** 20:.1f} MiB)")
+    if args.compare_out:
+        result = compare_on_this_machine(args.out, options, rounds=args.compare_rounds)
+        os.makedirs(os.path.dirname(os.path.abspath(args.compare_out)), exist_ok=True)
+        with open(args.compare_out, "w") as f:
+            json.dump({"options": manifest["options"], "exported_with": manifest["exported_with"], **result}, f,
+                      indent=1)
+
+
+if __name__ == "__main__":
+    main()
