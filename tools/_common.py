@@ -37,3 +37,23 @@ def run(main) -> None:
         main()
     except (CheckpointError, FrameDecodeError, ConfigError) as e:
         sys.exit(f"error: {e}")
+
+
+def int_list(p: argparse.ArgumentParser, value: str, flag: str) -> list[int]:
+    """Comma-separated integers of a flag (empty: []); a bad one ends the tool through the parser, naming `flag`."""
+    try:
+        return [int(v) for v in value.split(",") if v]
+    except ValueError:
+        p.error(f"{flag} must be comma-separated integers, got {value!r}")
+
+
+def json_saver(path: str | None):
+    """A function that writes its argument as JSON to `path` (nothing when None), making its folder: the XLA runners
+    call it after every measured entry, so that a run stopped from outside keeps what it measured."""
+    def save(result) -> None:
+        if path:
+            import json
+            os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+            with open(path, "w") as f:
+                json.dump(result, f, indent=1)
+    return save

@@ -8,11 +8,12 @@ Prints a table (with the issue's target, <= 1 s per pair at 150K points); --out 
 JAX and the TensorFlow-free ff3d_tf.labels.nsfp_program only.
 """
 import argparse
-import json
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # this folder, also when run through runpy
+
+import _common  # noqa: E402  (puts the repository root on sys.path too; imports no TensorFlow)
 
 from ff3d_tf import xla_program  # noqa: E402
 from ff3d_tf.labels import nsfp_program  # noqa: E402
@@ -29,16 +30,8 @@ def main():
     p.add_argument("--budget_s", type=float, default=None, help="start no entry after this many seconds")
     p.add_argument("--out", default=None, help="JSON file of the results")
     args = p.parse_args()
-    try:
-        points = [int(v) for v in args.points.split(",") if v]
-    except ValueError:
-        p.error(f"--points must be comma-separated integers, got {args.points!r}")
-
-    def save(result):  # after every entry, so that a run stopped from outside keeps what it measured
-        if args.out:
-            os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-            with open(args.out, "w") as f:
-                json.dump(result, f, indent=1)
+    points = _common.int_list(p, args.points, "--points")
+    save = _common.json_saver(args.out)
 
     try:
         result = nsfp_program.run_export(args.export_dir, args.runs, args.pair_steps, args.pair_runs,

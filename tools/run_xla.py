@@ -7,11 +7,12 @@ results, how far the device's are from them; --out writes the same as JSON. Impo
 ff3d_tf.inference.xla_artifact (format, loading) and xla_timing (timing, the table) only.
 """
 import argparse
-import json
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # this folder, also when run through runpy
+
+import _common  # noqa: E402  (puts the repository root on sys.path too; imports no TensorFlow)
 
 from ff3d_tf.inference import xla_artifact, xla_timing  # noqa: E402
 
@@ -27,16 +28,8 @@ def main():
     p.add_argument("--budget_s", type=float, default=None, help="start no artifact after this many seconds")
     p.add_argument("--out", default=None, help="JSON file of the results")
     args = p.parse_args()
-    try:
-        points = [int(v) for v in args.points.split(",") if v]
-    except ValueError:
-        p.error(f"--points must be comma-separated integers, got {args.points!r}")
-
-    def save(result):  # after every artifact, so that a run stopped from outside keeps what it measured
-        if args.out:
-            os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-            with open(args.out, "w") as f:
-                json.dump(result, f, indent=1)
+    points = _common.int_list(p, args.points, "--points")
+    save = _common.json_saver(args.out)
 
     try:
         result = xla_timing.run_export(args.export_dir, args.runs, args.warmup,

@@ -1,8 +1,6 @@
 """Portable XLA export: the artifacts, run by JAX where TensorFlow cannot be imported, give TF's forward."""
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -12,6 +10,7 @@ jax = pytest.importorskip("jax", reason="the xla extra (pip install .[xla]) prov
 import tensorflow as tf  # noqa: E402
 
 from conftest import ROOT  # noqa: E402
+from no_tensorflow import run_without_tf  # noqa: E402
 from ff3d_tf.inference import xla_artifact, xla_timing  # noqa: E402
 from ff3d_tf.inference.xla_export import export_forward, model_weights  # noqa: E402
 from ff3d_tf.model import build_model  # noqa: E402
@@ -21,21 +20,6 @@ from ff3d_tf.model.step import make_optimizer  # noqa: E402
 
 POINTS = (700, 1500)  # tiny config buckets (base 1024): 1024 and 1536
 TRAIN_POINTS, TRAIN_BATCH = (900,), 2  # one training-step artifact: 2 x 1024 points
-
-# Run as `python -c`: makes `import tensorflow` (and Keras, which would import it) fail, then runs the given script.
-NO_TF_SHIM = """
-import runpy, sys
-for name in ("tensorflow", "keras", "tf_keras"):
-    sys.modules[name] = None  # an import of a None entry raises ImportError
-try:
-    import tensorflow
-except ImportError:
-    tensorflow = None
-if tensorflow is not None:
-    raise SystemExit("the shim failed to block tensorflow")
-script, sys.argv = sys.argv[1], sys.argv[1:]
-runpy.run_path(script, run_name="__main__")
-"""
 
 # The JAX side of the comparison: reads the export and the saved inputs, writes the artifact's outputs.
 RUN_ON_INPUTS = """
@@ -56,13 +40,6 @@ for i, entry in enumerate(manifest["artifacts"]):
 assert "tensorflow" not in sys.modules or sys.modules["tensorflow"] is None
 np.savez(outputs_path, **outputs)
 """
-
-
-def _run_without_tf(script_path, *args):
-    out = subprocess.run([sys.executable, "-c", NO_TF_SHIM, script_path, *args], cwd=ROOT, capture_output=True,
-                         text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return out.stdout
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +80,7 @@ def test_artifacts_equal_tf_forward_without_tensorflow(exported_tiny, tmp_path):
     np.savez(tmp_path / "inputs.npz", **inputs)
     script = tmp_path / "run_on_inputs.py"
     script.write_text(RUN_ON_INPUTS)
-    _run_without_tf(str(script), ROOT, str(export_dir), str(tmp_path / "inputs.npz"), str(tmp_path / "outputs.npz"))
+    run_without_tf(str(script), ROOT, str(export_dir), str(tmp_path / "inputs.npz"), str(tmp_path / "outputs.npz"))
     got = np.load(tmp_path / "outputs.npz")
     for i, entry in enumerate(float32):
         flow_ref = reference[i]["flow_mps"].numpy()
@@ -129,7 +106,7 @@ def test_paper_config_artifact_equals_tf_forward_without_tensorflow(tmp_path):
     np.savez(tmp_path / "inputs.npz", **{f"0_{k}": a for k, a in zip(MODEL_INPUT_KEYS, arrays)})
     script = tmp_path / "run_on_inputs.py"
     script.write_text(RUN_ON_INPUTS)
-    _run_without_tf(str(script), ROOT, str(tmp_path / "export"), str(tmp_path / "inputs.npz"),
+    run_without_tf(str(script), ROOT, str(tmp_path / "export"), str(tmp_path / "inputs.npz"),
                     str(tmp_path / "outputs.npz"))
     got = np.load(tmp_path / "outputs.npz")
     assert reference["point_valid"].numpy().sum() == 12000
@@ -140,7 +117,7 @@ def test_paper_config_artifact_equals_tf_forward_without_tensorflow(tmp_path):
 def test_runner_without_tensorflow_writes_latency_json(exported_tiny, tmp_path):
     _, out_dir, _ = exported_tiny
     out_json = tmp_path / "latency.json"
-    stdout = _run_without_tf(os.path.join(ROOT, "tools", "run_xla.py"), out_dir, "--runs", "2", "--warmup", "1",
+    stdout = run_without_tf(os.path.join(ROOT, "tools", "run_xla.py"), out_dir, "--runs", "2", "--warmup", "1",
                              "--points", f"700,{TRAIN_POINTS[0]}", "--precisions", "float32", "--out", str(out_json))
     result = json.loads(out_json.read_text())
     assert result["platform"] == "cpu" and result["num_weights"] == len(json.load(

@@ -16,21 +16,13 @@ pytest.importorskip("jax", reason="the xla extra (pip install .[xla]) provides j
 import tensorflow as tf  # noqa: E402
 
 from conftest import ROOT  # noqa: E402
+from no_tensorflow import run_without_tf  # noqa: E402
 from ff3d_tf import xla_program  # noqa: E402
 from ff3d_tf.labels import nsfp, nsfp_export, nsfp_program  # noqa: E402
 
 OPTIONS = nsfp.NsfpOptions(hidden_layers=2, hidden_units=16, grid_cell_m=0.25, crop_xy_half_extent_m=4.0,
                            crop_z_range_m=(-3.0, 3.0))
 POINTS, SEGMENT_STEPS, CALLS = 1000, 5, 2
-
-# Run as `python -c`: makes `import tensorflow` (and Keras) fail, then runs the given script with its arguments.
-NO_TF_SHIM = """
-import runpy, sys
-for name in ("tensorflow", "keras", "tf_keras"):
-    sys.modules[name] = None  # an import of a None entry raises ImportError
-script, sys.argv = sys.argv[1], sys.argv[1:]
-runpy.run_path(script, run_name="__main__")
-"""
 
 # The JAX side: both grids and CALLS segments of the fit on the entry's pair, saved for the comparison.
 RUN_FIT = """
@@ -50,13 +42,6 @@ assert sys.modules.get("tensorflow") is None, "the runner imported tensorflow"
 np.savez(out_path, grid_tm1=np.asarray(grids[0]), grid_t0=np.asarray(grids[1]),
          **{f"s{i:03d}": np.asarray(x) for i, x in enumerate(state)})
 """
-
-
-def _run_without_tf(script_path, *args):
-    out = subprocess.run([sys.executable, "-c", NO_TF_SHIM, script_path, *args], cwd=ROOT, capture_output=True,
-                         text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return out.stdout
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +77,7 @@ def test_programs_without_tensorflow_equal_tensorflow_fit(exported, tmp_path):
     entry = manifest["entries"][0]
     script = tmp_path / "run_fit.py"
     script.write_text(RUN_FIT)
-    _run_without_tf(str(script), ROOT, out_dir, str(CALLS), str(tmp_path / "jax.npz"))
+    run_without_tf(str(script), ROOT, out_dir, str(CALLS), str(tmp_path / "jax.npz"))
     got = np.load(tmp_path / "jax.npz")
     # TensorFlow's own: the grids of build_distance_grid and CALLS calls of nsfp._fit_segment from initial_fit_state.
     clouds = nsfp_program.padded_clouds(nsfp_program.entry_pair(entry), entry)
@@ -119,7 +104,7 @@ def test_programs_without_tensorflow_equal_tensorflow_fit(exported, tmp_path):
 def test_runner_tool_times_and_checks_the_reference_without_tensorflow(exported, tmp_path):
     out_dir, _ = exported
     out_json = tmp_path / "nsfp.json"
-    stdout = _run_without_tf(os.path.join(ROOT, "tools", "run_nsfp_xla.py"), out_dir, "--runs", "2", "--pair_steps",
+    stdout = run_without_tf(os.path.join(ROOT, "tools", "run_nsfp_xla.py"), out_dir, "--runs", "2", "--pair_steps",
                              "5", "--pair_runs", "1", "--precisions", "float32", "--out", str(out_json))
     assert "NSFP per-pair fit" in stdout
     (row,) = json.loads(out_json.read_text())["rows"]
