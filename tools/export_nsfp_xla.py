@@ -6,18 +6,22 @@ python tools/export_nsfp_xla.py --out DIR [--points 64000,150000] [--segment_ste
     [--compare_out J [--compare_rounds 2]]
 The pairs are synthetic (ff3d_tf.labels.nsfp_program.synthetic_pair: uniform clouds in the crop box, a box moving by a
 known motion) and regenerated from a seed by the runner, so only programs and initial parameters are written.
+The fit is the pseudo-label job's (`nsfp.MEASURED_FIT_OPTIONS`: two-sided Chamfer, --reverse_every 5). --points are
+the points a fit sees: that job fits every 4th point (`fit_every`) and evaluates the MLP at all, so a pair of 150K
+points is the 37,500-point entry.
 --reference_calls N also saves TensorFlow's grids and fit after N segments on one pair, which the runner compares
 with the device's. --compare_out times, in this process, the exported float32 programs with JAX on this machine's
 CPU against TensorFlow's fit and grid build on the first entry's pair (JSON). Needs the `xla` extra; run the result
 where only JAX is installed with `python tools/run_nsfp_xla.py DIR`.
 """
+import dataclasses
 import json
 import os
 
 import _common
 
 from ff3d_tf.labels import nsfp_program
-from ff3d_tf.labels.nsfp import NsfpOptions
+from ff3d_tf.labels.nsfp import MEASURED_FIT_OPTIONS
 from ff3d_tf.labels.nsfp_export import compare_on_this_machine, export_nsfp
 
 
@@ -31,18 +35,21 @@ def main():
     p.add_argument("--reference_calls", type=int, default=0, help="segments of TensorFlow's reference fit")
     p.add_argument("--reference_points", type=int, default=None, help="the reference pair's size (default: first)")
     p.add_argument("--crop_m", type=float, default=35.0, help="keep |x|, |y| <= this (m): the grid's x-y extent")
-    p.add_argument("--grid_cell_m", type=float, default=NsfpOptions.grid_cell_m)
-    p.add_argument("--hidden_layers", type=int, default=NsfpOptions.hidden_layers)
-    p.add_argument("--hidden_units", type=int, default=NsfpOptions.hidden_units)
+    p.add_argument("--grid_cell_m", type=float, default=MEASURED_FIT_OPTIONS.grid_cell_m)
+    p.add_argument("--hidden_layers", type=int, default=MEASURED_FIT_OPTIONS.hidden_layers)
+    p.add_argument("--hidden_units", type=int, default=MEASURED_FIT_OPTIONS.hidden_units)
+    p.add_argument("--reverse_every", type=int, default=MEASURED_FIT_OPTIONS.reverse_every,
+                   help="two-sided Chamfer's correspondences found every k steps (0: one-sided)")
     p.add_argument("--seed", type=int, default=0, help="MLP initialisation")
     p.add_argument("--compare_out", default=None, help="JSON of JAX-vs-TensorFlow seconds per step on this CPU")
     p.add_argument("--compare_rounds", type=int, default=2)
     args = p.parse_args()
     try:
         points = [int(v) for v in args.points.split(",") if v]
-        options = NsfpOptions(hidden_layers=args.hidden_layers, hidden_units=args.hidden_units,
-                              grid_cell_m=args.grid_cell_m, crop_xy_half_extent_m=args.crop_m,
-                              crop_z_range_m=(-3.0, 3.0), seed=args.seed)
+        options = dataclasses.replace(
+            MEASURED_FIT_OPTIONS, hidden_layers=args.hidden_layers, hidden_units=args.hidden_units,
+            grid_cell_m=args.grid_cell_m, crop_xy_half_extent_m=args.crop_m, crop_z_range_m=(-3.0, 3.0),
+            reverse_every=args.reverse_every, fit_every=1, seed=args.seed)
         manifest = export_nsfp(options, points, args.out, args.segment_steps, args.precisions.split(","),
                                args.platforms.split(","), args.reference_calls, args.reference_points)
     except ValueError as e:

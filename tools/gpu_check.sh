@@ -6,8 +6,9 @@
 #      step and per pair: the accelerator's input rate for the README's sizing table;
 #   3. what the device computes on fixed inputs against TensorFlow's results saved at export (flow, loss, gradient
 #      norm), so a wrong GPU lowering shows;
-#   4. when NSFP_DIR holds an export: NSFP's per-pair optimiser (distance grids and Adam steps, issue 18) at 150K and
-#      64K points: seconds per step, per grid, per pair (the issue's target: <= 1 s per pair at 150K points), and its
+#   4. when NSFP_DIR holds an export: NSFP's per-pair optimiser (distance grids and Adam steps, issue 18; the
+#      pseudo-label job's two-sided fit) fitting 150K points and 37.5K (a 150K pair as the job fits it, every 4th
+#      point): seconds per step, per grid, per pair (the issue's target: <= 1 s per pair at 150K points), and its
 #      grids, loss and motion against TensorFlow's.
 #
 #   tools/gpu_check.sh [EXPORT_DIR] [OUT_JSON] [more tools/run_xla.py flags, e.g. --precisions float32]
@@ -17,9 +18,9 @@
 #       --precisions float32,tf32,bfloat16 --train_points 177000 --train_batch_sizes 1,8 --reference \
 #       --out .devcarry/xla_paper                                            # random weights, ~35 MB
 # NSFP_DIR (default .devcarry/nsfp_xla; skipped when absent) likewise, ~3 minutes on 2 CPU cores (the reference: 50
-# of TensorFlow's steps at 64K points):
-#   python tools/export_nsfp_xla.py --points 150000,64000 --segment_steps 50 --precisions float32,tf32 \
-#       --reference_calls 1 --reference_points 64000 --out .devcarry/nsfp_xla   # synthetic pairs, ~3 MB
+# of TensorFlow's steps at 37.5K points):
+#   python tools/export_nsfp_xla.py --points 150000,37500 --segment_steps 50 --precisions float32,tf32 \
+#       --reference_calls 1 --reference_points 37500 --out .devcarry/nsfp_xla   # synthetic pairs, ~3 MB
 # OUT_JSON defaults to $OUT/xla_latency_gpu.json where $OUT is set, else benchmarks/xla_latency_gpu.json; NSFP's to
 # nsfp_xla_gpu.json beside it. Both are rewritten after every artifact. Relative paths are from the repository root.
 # The GPU machine needs python3 with jax[cuda], flatbuffers and numpy. Environment knobs: PYTHON (python3), RUNS (90)

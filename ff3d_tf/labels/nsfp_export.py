@@ -38,11 +38,6 @@ def _num_forward(options: nsfp.NsfpOptions) -> int:
     return 2 * (options.hidden_layers + 1)
 
 
-def _extra_fit_args(options: nsfp.NsfpOptions) -> dict:
-    """`_fit_segment`'s optional static arguments that the options set (two-sided Chamfer, when the module has it)."""
-    return {"reverse_every": options.reverse_every} if getattr(options, "reverse_every", 0) else {}
-
-
 def fit_program_fn(options: nsfp.NsfpOptions, padded_points: int, segment_steps: int, grid_cells: int):
     """(flat function, argument specs) of `segment_steps` steps of `nsfp._fit_segment` for one bucket:
     (state leaves..., t0 xyz, t0 mask, t-1 xyz, t-1 mask, t-1 grid (distance_m [grid_cells], origin_m [3], dims [3]
@@ -52,7 +47,6 @@ def fit_program_fn(options: nsfp.NsfpOptions, padded_points: int, segment_steps:
     template = nsfp.initial_fit_state(options, padded_points)
     leaves = tf.nest.flatten(template)
     num_state = len(leaves)
-    extra = _extra_fit_args(options)
 
     def flat_fit(*flat):
         state = tf.nest.pack_sequence_as(template, list(flat[:num_state]))
@@ -61,7 +55,7 @@ def fit_program_fn(options: nsfp.NsfpOptions, padded_points: int, segment_steps:
         grids = (DistanceGrid(*grid[:4]), DistanceGrid(*grid[4:]))
         out = nsfp._fit_segment.python_function(state, clouds, grids, tuple(flat[num_state + 12:]),
                                                 _num_forward(options), False, options.squared_chamfer,
-                                                segment_steps, **extra)
+                                                segment_steps, options.reverse_every)
         return tuple(tf.nest.flatten(out))
 
     p = padded_points
@@ -165,11 +159,10 @@ def tf_grids(entry: dict, clouds: list[np.ndarray], options: nsfp.NsfpOptions) -
 def tf_segment(options: nsfp.NsfpOptions, entry: dict, hyper: dict):
     """`segment(state, clouds, grids)`: TensorFlow's own `nsfp._fit_segment`, `entry["segment_steps"]` steps."""
     hyper_t = _hyper_tensors(hyper)
-    extra = _extra_fit_args(options)
 
     def segment(state, clouds, grids):
         return nsfp._fit_segment(state, clouds, grids, hyper_t, _num_forward(options), False, options.squared_chamfer,
-                                 entry["segment_steps"], **extra)
+                                 entry["segment_steps"], options.reverse_every)
     return segment
 
 

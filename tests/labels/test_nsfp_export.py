@@ -21,7 +21,7 @@ from ff3d_tf import xla_program  # noqa: E402
 from ff3d_tf.labels import nsfp, nsfp_export, nsfp_program  # noqa: E402
 
 OPTIONS = nsfp.NsfpOptions(hidden_layers=2, hidden_units=16, grid_cell_m=0.25, crop_xy_half_extent_m=4.0,
-                           crop_z_range_m=(-3.0, 3.0))
+                           crop_z_range_m=(-3.0, 3.0), reverse_every=2)  # two-sided, as the pseudo-label job fits
 POINTS, SEGMENT_STEPS, CALLS = 1000, 5, 2
 
 # The JAX side: both grids and CALLS segments of the fit on the entry's pair, saved for the comparison.
@@ -86,7 +86,8 @@ def test_programs_without_tensorflow_equal_tensorflow_fit(exported, tmp_path):
     state = nsfp.initial_fit_state(OPTIONS, entry["padded_points"])
     for _ in range(CALLS):
         state = nsfp._fit_segment(state, tuple(tf.constant(c) for c in clouds), (grid_tm1, grid_t0), hyper,
-                                  2 * (OPTIONS.hidden_layers + 1), False, OPTIONS.squared_chamfer, SEGMENT_STEPS)
+                                  2 * (OPTIONS.hidden_layers + 1), False, OPTIONS.squared_chamfer, SEGMENT_STEPS,
+                                  OPTIONS.reverse_every)
     np.testing.assert_allclose(got["grid_tm1"], grid_tm1.distance_m.numpy(), rtol=0, atol=1e-5)
     np.testing.assert_allclose(got["grid_t0"], grid_t0.distance_m.numpy(), rtol=0, atol=1e-5)
     flat = tf.nest.flatten(state)
