@@ -3,7 +3,7 @@ model trained on the human labels and against zero flow, scored on held-out huma
 
 python tools/benchmark_distillation.py [--out_dir distillation_out] [--json benchmarks/distillation_synthetic.json]
     [--steps 1000] [--train_segments 3 --eval_segments 2 --frames_per_segment 5 --lidar_scale 0.25]
-    [--nsfp_max_iterations 100 --nsfp_patience 100 --nsfp_grid_cell_m 0.1 --nsfp_ground_below_z_m 0.3
+    [--nsfp_max_iterations 400 --nsfp_patience 100 --nsfp_grid_cell_m 0.1 --nsfp_ground_below_z_m 0.3
      --nsfp_crop_m 32] [--config configs/synthetic_cpu.yaml] [--set key=value ...]
 
 Stages (each one of the project's tools as a subprocess, as `tools/demo.py` runs them; its output streams through):
@@ -147,7 +147,7 @@ def main():
     p.add_argument("--eval_segments", type=int, default=2)
     p.add_argument("--frames_per_segment", type=int, default=5)
     p.add_argument("--lidar_scale", type=float, default=0.25, help="< 1 shrinks the range images (fewer points)")
-    p.add_argument("--nsfp_max_iterations", type=int, default=100, help="NSFP step cap per pair")
+    p.add_argument("--nsfp_max_iterations", type=int, default=400, help="NSFP step cap per pair")
     p.add_argument("--nsfp_patience", type=int, default=100, help="NSFP early stopping")
     p.add_argument("--nsfp_grid_cell_m", type=float, default=0.1, help="NSFP distance transform cell")
     p.add_argument("--nsfp_ground_below_z_m", type=float, default=0.3,
