@@ -1,11 +1,13 @@
-"""The distance transform of a cloud and the one-sided Chamfer distance read from it or found exactly: what the NSFP
-pseudo-labels (`ff3d_tf.labels.nsfp`) pull the moved clouds onto.
+"""The distance transform of a cloud and the Chamfer distance (its moved-to-fixed side read from the transform or found
+exactly, its other side through given correspondences): what the NSFP pseudo-labels (`ff3d_tf.labels.nsfp`) pull the
+moved clouds onto.
 
 Fast Neural Scene Flow (FastNSF; Li, Zheng, Ferroni, Pontes and Lucey, ICCV 2023): the Chamfer term reads a
 precomputed distance transform of the fixed cloud (a voxel grid of distances to its nearest point, trilinearly
 interpolated), so a step costs O(N) instead of O(N*M). Here: exact nearest neighbours by brute force, chunked
 (`nearest_index`, `exact_nearest_distance_m`; for checking), the grid's bounds (`grid_geometry`), its build
-(`build_distance_grid`) and read (`read_distance_grid`), and `chamfer_loss` on either.
+(`build_distance_grid`, its compiled `grid_program`) and read (`read_distance_grid`), `chamfer_loss` on either and
+`reverse_chamfer_loss`.
 
 The distance transform (`build_distance_grid`) is a pyramid of grids, each `PYRAMID_FACTORS` times coarser than the one
 below, the finest `cell_m` apart. On each level a node's value is the exact Euclidean distance to its nearest point
@@ -44,7 +46,6 @@ class DistanceGrid(NamedTuple):
     cell_m: tf.Tensor  # [] float32
 
 
-
 # --- nearest neighbours --------------------------------------------------------------------------------------------
 
 def _nearest_index_chunk(query_xyz, target_xyz, target_mask):
@@ -72,8 +73,12 @@ def exact_nearest_distance_m(query_xyz, target_xyz, target_mask):
     """[Q] distance (m) of each query point to its nearest valid target point, by brute force. The neighbour is chosen
     on the matmul form and its distance recomputed from the coordinate difference (no cancellation error);
     differentiable in the query (the neighbour held fixed)."""
-    nearest = tf.gather(target_xyz, nearest_index(query_xyz, target_xyz, target_mask))
-    return tf.sqrt(tf.maximum(tf.reduce_sum((query_xyz - nearest) ** 2, -1), _SQRT_FLOOR))
+    return _distance_m(query_xyz, tf.gather(target_xyz, nearest_index(query_xyz, target_xyz, target_mask)))
+
+
+def _distance_m(a_xyz, b_xyz):
+    """[N] distance (m) between paired points, from their coordinate difference; a finite gradient at 0."""
+    return tf.sqrt(tf.maximum(tf.reduce_sum((a_xyz - b_xyz) ** 2, -1), _SQRT_FLOOR))
 
 
 # --- the distance transform ----------------------------------------------------------------------------------------
@@ -158,15 +163,28 @@ def _upsample(values, dims_out, f: int):
 _GRID_PROGRAMS: dict = {}
 
 
-def _grid_program(dims: tuple, band_cells: int, coarse_band_cells: int, factors: tuple = PYRAMID_FACTORS):
-    """The compiled pyramid for one grid shape (retraced per point bucket)."""
-    key = (dims, band_cells, coarse_band_cells, factors)
+def padded_grid_cells(dims) -> int:
+    """Length of a grid's flat distances as `grid_program` returns them: the node count, padded to a bucket size."""
+    return bucket_size(int(np.prod(dims)), _GRID_BUCKET_BASE)
+
+
+def grid_program(dims: tuple, band_cells: int, coarse_band_cells: int, factors: tuple = PYRAMID_FACTORS):
+    """The compiled distance transform for one grid shape (retraced per point bucket): (points_xyz [P,3] m,
+    point_mask [P] bool, origin_m [3], cell_m []) -> distance_m [padded_grid_cells(dims)], zero past the nodes. The
+    points are sorted into node order first, so that neighbouring points scatter into neighbouring memory (the result
+    does not depend on the order)."""
+    dims = tuple(int(d) for d in dims)
+    key = (dims, band_cells, coarse_band_cells, tuple(factors))
     if key not in _GRID_PROGRAMS:
         levels = pyramid_dims(dims, factors)
         fine, coarse = band_offsets(band_cells), band_offsets(coarse_band_cells)
+        num_nodes = int(np.prod(dims))
 
         @tf.function(jit_compile=True)
         def build(points_xyz, point_mask, origin_m, cell_m):
+            node = tf.cast(tf.floor((points_xyz - origin_m) / cell_m + 0.5), tf.int32)
+            order = tf.argsort((node[:, 0] * dims[1] + node[:, 1]) * dims[2] + node[:, 2], stable=True)
+            points_xyz, point_mask = tf.gather(points_xyz, order), tf.gather(point_mask, order)
             top = len(levels) - 1
             values = tf.sqrt(_brute_squared_m2(points_xyz, point_mask, origin_m, levels[top],
                                                cell_m * level_scale(top, factors)))
@@ -176,7 +194,7 @@ def _grid_program(dims: tuple, band_cells: int, coarse_band_cells: int, factors:
                 d2 = _band_squared_m2(points_xyz, point_mask, origin_m, levels[level], h, offsets)
                 coarser = _upsample(values, levels[level], level_factor(level, factors))
                 values = tf.where(d2 <= tf.square(band * h), tf.sqrt(d2), coarser)
-            return tf.reshape(values, [-1])
+            return tf.pad(tf.reshape(values, [-1]), [[0, padded_grid_cells(dims) - num_nodes]])
         _GRID_PROGRAMS[key] = build
     return _GRID_PROGRAMS[key]
 
@@ -208,14 +226,9 @@ def build_distance_grid(points_xyz, point_mask, origin_m, dims, cell_m: float, b
     point_mask = np.asarray(point_mask, bool)
     if not point_mask.any():
         raise ValueError("build_distance_grid: no valid point")
-    # Points in node order: neighbouring points scatter into neighbouring memory (the result does not depend on it).
-    u = np.floor((points_xyz - origin_m) / np.float32(cell_m) + 0.5).astype(np.int64)
-    order = np.argsort((u[:, 0] * int(dims[1]) + u[:, 1]) * int(dims[2]) + u[:, 2], kind="stable")
-    program = _grid_program(tuple(int(d) for d in dims), band_cells, coarse_band_cells, tuple(factors))
-    values = program(tf.constant(points_xyz[order]), tf.constant(point_mask[order]), tf.constant(origin_m, tf.float32),
+    program = grid_program(dims, band_cells, coarse_band_cells, factors)
+    values = program(tf.constant(points_xyz), tf.constant(point_mask), tf.constant(origin_m, tf.float32),
                      tf.constant(cell_m, tf.float32))
-    size = bucket_size(int(np.prod(dims)), _GRID_BUCKET_BASE)
-    values = tf.pad(values, [[0, size - int(np.prod(dims))]])
     return DistanceGrid(values, tf.constant(origin_m, tf.float32), tf.constant(dims, tf.int32),
                         tf.constant(cell_m, tf.float32))
 
@@ -258,8 +271,7 @@ def reverse_chamfer_loss(target_xyz, target_mask, moved_xyz, nearest_moved, squa
     """The other side of the Chamfer distance: mean over valid target points of the distance (m; `squared`: its
     square) to the moved point `nearest_moved` [M] int32 names (its nearest valid moved point, `nearest_index`, found
     by the caller, possibly some steps ago), truncated as `chamfer_loss`; differentiable in `moved_xyz`."""
-    difference = target_xyz - tf.gather(moved_xyz, nearest_moved)
-    distance_m = tf.sqrt(tf.maximum(tf.reduce_sum(difference ** 2, -1), _SQRT_FLOOR))
+    distance_m = _distance_m(target_xyz, tf.gather(moved_xyz, nearest_moved))
     return _mean_distance(distance_m, target_mask, squared, truncate_m)
 
 

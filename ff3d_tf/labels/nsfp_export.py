@@ -6,8 +6,8 @@ one cloud and a segment of S Adam steps of the fit, traced from `ff3d_tf.labels.
 Both programs are XLA programs in TensorFlow already (`jit_compile=True`), so both are exported: a GPU runs the whole
 pair (grid build and fit) on the device. What stays on the host: the grid's bounds and the clouds' centring
 (`distance_grid.grid_geometry`, numpy, once per pair), which fix the grid's node counts: a grid program is compiled per
-(point bucket, node counts), as in TensorFlow. The grid program sorts the points into node order on the device
-(`build_distance_grid` does that in numpy on the host; the distances do not depend on the order).
+(point bucket, node counts), as in TensorFlow. The grid program is `distance_grid.grid_program`
+itself (it sorts the points into node order on the device).
 
 The pairs are `nsfp_program.synthetic_pair` (uniform clouds in the crop box, a moving box with a known motion): the
 runner regenerates them from a seed, so only programs and the MLPs' initial parameters travel.
@@ -69,23 +69,17 @@ def fit_program_fn(options: nsfp.NsfpOptions, padded_points: int, segment_steps:
 
 
 def grid_program_fn(options: nsfp.NsfpOptions, dims, padded_points: int):
-    """(function, argument specs, padded node count C) of `distance_grid`'s compiled pyramid for node counts `dims`:
+    """(function, argument specs, padded node count C) of `distance_grid.grid_program` for node counts `dims`:
     (points_xyz [P,3] m, point_mask [P] bool, origin_m [3], cell_m []) -> (distance_m [C],), as
-    `build_distance_grid` returns it (points sorted into node order first, zero padding past the nodes)."""
-    dims = tuple(int(d) for d in dims)
-    build = distance_grid._grid_program(dims, options.band_cells, options.coarse_band_cells)
-    num_nodes = int(np.prod(dims))
-    padded_cells = bucket_size(num_nodes, distance_grid._GRID_BUCKET_BASE)
+    `build_distance_grid` computes it."""
+    build = distance_grid.grid_program(dims, options.band_cells, options.coarse_band_cells)
 
     def grid(points_xyz, point_mask, origin_m, cell_m):
-        node = tf.cast(tf.floor((points_xyz - origin_m) / cell_m + 0.5), tf.int32)
-        order = tf.argsort((node[:, 0] * dims[1] + node[:, 1]) * dims[2] + node[:, 2], stable=True)
-        values = build.python_function(tf.gather(points_xyz, order), tf.gather(point_mask, order), origin_m, cell_m)
-        return (tf.pad(values, [[0, padded_cells - num_nodes]]),)
+        return (build.python_function(points_xyz, point_mask, origin_m, cell_m),)
 
     specs = [tf.TensorSpec([padded_points, 3], tf.float32), tf.TensorSpec([padded_points], tf.bool),
              tf.TensorSpec([3], tf.float32), tf.TensorSpec([], tf.float32)]
-    return grid, specs, padded_cells
+    return grid, specs, distance_grid.padded_grid_cells(dims)
 
 
 def state_layout(options: nsfp.NsfpOptions, padded_points: int) -> tuple[list[dict], dict]:
