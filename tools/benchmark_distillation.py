@@ -17,12 +17,15 @@ Stages (each one of the project's tools as a subprocess, as `tools/demo.py` runs
    training reads: the grid crop), and everything written to --json: EPE on moving / stationary points per class,
    the three-way EPE (foreground dynamic), the eval's full tables, the options, steps and timings.
 
-Resumable: a finished stage leaves `OUT/stages/<stage>.json` (its command and seconds); a rerun with the same
-command skips it (its recorded seconds stay in the JSON) and reruns every later stage; an interrupted stage resumes
-(the tools skip finished outputs, training restarts from its checkpoint). A stage whose command changed (other NSFP
-options, another step count) starts again from nothing: its outputs are removed first.
+Resumable: a finished stage leaves `OUT/stages/<stage>.json` (its command, a hash of the project's code and
+configs, and its seconds); a rerun with the same command on the same code skips it (its recorded seconds stay in the
+JSON) and reruns every later stage; an interrupted stage resumes (the tools skip finished outputs, training restarts
+from its checkpoint). A stage whose command or code changed (other NSFP options, another step count, a tool's new
+defaults) starts again from nothing: its outputs are removed first.
 """
 import argparse
+import glob
+import hashlib
 import json
 import math
 import os
@@ -43,12 +46,25 @@ SUMMARY_KEYS = tuple(f"{c}/{s}/{stat}" for c in CLASSES for s in ("moving", "sta
     "bucketed/mean_dynamic", "bucketed/mean_static")
 
 
+def code_fingerprint() -> str:
+    """SHA-256 of the package's and tools' Python files and the configs: what a stage's outputs depend on besides
+    its command line (a tool's defaults live in them)."""
+    digest = hashlib.sha256()
+    patterns = ("ff3d_tf/**/*.py", "tools/*.py", "configs/*.yaml")
+    for path in sorted(p for pattern in patterns for p in glob.glob(os.path.join(ROOT, pattern), recursive=True)):
+        digest.update(os.path.relpath(path, ROOT).encode() + b"\0")
+        with open(path, "rb") as f:
+            digest.update(f.read() + b"\0")
+    return digest.hexdigest()
+
+
 class Stages:
-    """Runs stages as subprocesses; skips one whose record holds the same command (and every stage before the
-    first that runs); keeps each stage's seconds."""
+    """Runs stages as subprocesses; skips one whose record holds the same command and code (and every stage before
+    the first that runs); keeps each stage's seconds."""
 
     def __init__(self, out_dir: str, total: int):
         self.record_dir = os.path.join(out_dir, "stages")
+        self.code = code_fingerprint()
         self.ran, self.done, self.total, self.t0 = False, 0, total, time.time()
         self.seconds, self.skipped = {}, []
 
@@ -57,17 +73,18 @@ class Stages:
 
     def run(self, name: str, args: list[str], outputs: list[str]) -> None:
         """Runs `args` (a tool and its flags) unless complete. `outputs` (directories) are removed first when a
-        run of this stage with another command left them: the tools skip or resume from what exists, which would
-        mix, e.g., pseudo-labels of other NSFP options or a model of another step count into this run."""
+        run of this stage with another command or code left them: the tools skip or resume from what exists, which
+        would mix, e.g., pseudo-labels of other NSFP options or a model of another step count into this run."""
         self.done += 1
         head = f"[{self.done}/{self.total}] {name}"
+        key = {"command": args, "code": self.code}
         if not self.ran:
             try:
                 with open(self._record(name)) as f:
                     record = json.load(f)
             except (OSError, ValueError):
                 record = {}
-            if record.get("command") == args:
+            if {k: record.get(k) for k in key} == key:
                 self.seconds[name] = record["seconds"]
                 self.skipped.append(name)
                 print(f"=== {head}: complete ({record['seconds']:.0f} s when run), skipped", flush=True)
@@ -76,17 +93,17 @@ class Stages:
         started = os.path.join(self.record_dir, name + ".started.json")
         try:
             with open(started) as f:
-                previous = json.load(f).get("command")
+                previous = json.load(f)
         except (OSError, ValueError):
-            previous = None
-        if previous != args:
+            previous = {}
+        if {k: previous.get(k) for k in key} != key:
             for path in outputs:
                 if os.path.isdir(path):
-                    print(f"=== {head}: removing {path} (written by another command)", flush=True)
+                    print(f"=== {head}: removing {path} (written by another command or code)", flush=True)
                     shutil.rmtree(path)
         os.makedirs(self.record_dir, exist_ok=True)
         with open(started, "w") as f:
-            json.dump({"command": args}, f)
+            json.dump(key, f)
         print(f"\n=== {head} (elapsed {time.time() - self.t0:.0f} s): {' '.join(args)}", flush=True)
         t = time.time()
         code = subprocess.call([sys.executable] + args, cwd=ROOT)  # an interrupted stage resumes on a rerun
@@ -95,7 +112,7 @@ class Stages:
                      "again to resume")
         self.seconds[name] = time.time() - t
         with open(self._record(name) + ".partial", "w") as f:
-            json.dump({"command": args, "seconds": self.seconds[name]}, f)
+            json.dump({**key, "seconds": self.seconds[name]}, f)
         os.replace(self._record(name) + ".partial", self._record(name))
         print(f"=== {head} done in {self.seconds[name]:.0f} s", flush=True)
 

@@ -216,7 +216,9 @@ def export_nsfp(options: nsfp.NsfpOptions, points: Sequence[int], out_dir: str, 
     hyper = timing_hyper(options)
     manifest = {"format": nsfp_program.FORMAT,
                 "exported_with": {"tensorflow": tf.__version__, "jax": jax.__version__, "platforms": list(platforms)},
-                "options": dataclasses.asdict(options), "hyper": hyper, "num_params": len(params), "entries": []}
+                "options": dataclasses.asdict(options), "hyper": hyper, "num_params": len(params),
+                # The pseudo-label job fits every k-th point of a pair (the entries' points are fitted points).
+                "job_fit_every": nsfp.MEASURED_FIT_OPTIONS.fit_every, "entries": []}
     initial_arrays = {}
     for i, n in enumerate(points):
         entry = {**pair_entry(options, n, seed + i), "segment_steps": int(segment_steps)}

@@ -285,8 +285,8 @@ def run_export(export_dir: str, runs: int = 5, pair_steps: int = 500, pair_runs:
     device = jax.devices()[0]
     result = {"export_dir": export_dir, "jax": jax.__version__, "platform": device.platform,
               "device": getattr(device, "device_kind", str(device)), "options": manifest["options"],
-              "hyper": manifest["hyper"], "exported_with": manifest.get("exported_with", {}), "rows": [],
-              "skipped": []}
+              "hyper": manifest["hyper"], "exported_with": manifest.get("exported_with", {}),
+              "job_fit_every": manifest.get("job_fit_every", 1), "rows": [], "skipped": []}
     grid_cache: dict = {}  # one compiled grid program per entry, whatever the precision
     order = list(dict.fromkeys(p for entry in manifest["entries"] for p in entry["fit_files"]))
     for precision, entry in [(p, e) for p in order for e in manifest["entries"] if p in e["fit_files"]]:
@@ -322,7 +322,8 @@ def describe_row(row: dict) -> str:
 
 def nsfp_table(result: dict, target_s_per_pair: float = 1.0, target_points: int = 150000) -> str:
     """Markdown table of a `run_export` result: seconds per pair at the measured steps and, from the seconds per
-    step, at NSFP's step counts; the issue's target (<= 1 s per pair at 150K points)."""
+    step, at NSFP's step counts; the issue's target (<= 1 s per pair at 150K points), judged on the entry that fits
+    every point of such a pair and on the one the pseudo-label job fits (every `job_fit_every`-th point)."""
     lines = [f"NSFP per-pair fit, {result['device']} ({result['platform']}, jax {result['jax']})", "",
              "| points | precision | ms per step | grid ms (one cloud) | s per pair (measured) | s at 1000 steps | "
              "s at 5000 steps |", "|---:|---|---:|---:|---|---:|---:|"]
@@ -334,11 +335,15 @@ def nsfp_table(result: dict, target_s_per_pair: float = 1.0, target_points: int 
                      f"{grids_s + 5000 * row['seconds_per_step']:.2f} |")
     for row in result["skipped"]:
         lines.append(f"| {row['points']:,} | {row['precision']} | skipped: {row['reason']} | | | | |")
-    at_target = [r for r in result["rows"] if r["points"] == target_points]
-    for row in at_target:
+    fit_every = result.get("job_fit_every", 1)
+    fitted = {target_points: "every point fitted"}
+    if fit_every > 1:
+        fitted[-(-target_points // fit_every)] = f"one point in {fit_every} fitted, as the pseudo-label job does"
+    for row in [r for r in result["rows"] if r["points"] in fitted]:
         met = "met" if row["seconds_per_pair"] <= target_s_per_pair else "not met"
-        lines.append(f"\nTarget <= {target_s_per_pair:g} s per pair at {target_points:,} points ({row['precision']}, "
-                     f"{row['pair_steps']} steps): {met}")
+        lines.append(f"\nTarget <= {target_s_per_pair:g} s per pair of {target_points:,} points "
+                     f"({fitted[row['points']]}: {row['points']:,}; {row['precision']}, {row['pair_steps']} steps): "
+                     f"{met}")
     checks = [r for r in result["rows"] if r["reference"]]
     if checks:
         lines += ["", "Against TensorFlow's grids and fit on the reference pair (export machine, CPU, float32):", ""]

@@ -12,9 +12,9 @@ import pytest
 
 from conftest import ROOT, TINY_OVERRIDES, TINY_SCALE
 
-# Nine stages, each a tool in its own process (TensorFlow's import alone is seconds each): about 100 s of CPU, 3 minutes
-# on this shared 2-core machine under load.
-pytestmark = pytest.mark.slow
+# The end-to-end run: nine stages, each a tool in its own process (TensorFlow's import alone is seconds each): about
+# 100 s of CPU, 3 minutes on this shared 2-core machine under load.
+slow = pytest.mark.slow
 
 STEPS = 2
 NSFP_ITERATIONS = 3
@@ -53,6 +53,7 @@ def _grid_points(records_dir, extras=()):
             yield {k: ex[k][inside] for k in ("flow_mps_t0", "class_id_t0") + tuple(extras)}
 
 
+@slow
 def test_json_structure_and_finite_figures(run):
     result, _, stdout = run
     for key in ("verdict", "eval_summary", "eval_metrics", "pseudo_labels", "options", "nsfp_job", "timings_s",
@@ -88,6 +89,7 @@ def test_json_structure_and_finite_figures(run):
     assert "pseudo-trained beats zero flow on moving points" in stdout
 
 
+@slow
 def test_zero_flow_epe_is_the_mean_speed_of_the_evaluated_points(run):
     result, work, _ = run
     from ff3d_tf import schema
@@ -105,6 +107,7 @@ def test_zero_flow_epe_is_the_mean_speed_of_the_evaluated_points(run):
     np.testing.assert_allclose(zero["all/stationary/mean_l2_mps"], stationary.mean(), rtol=1e-6, atol=1e-9)
 
 
+@slow
 def test_pseudo_label_epe_is_their_distance_to_the_human_labels(run):
     result, work, _ = run
     from ff3d_tf import schema
@@ -126,3 +129,31 @@ def test_pseudo_label_epe_is_their_distance_to_the_human_labels(run):
     assert labels["points"]["points_with_pseudo_flow"] == fitted > 0
     assert labels["points"]["pairs"] == 2
     assert os.path.exists(work / "model_pseudo" / "train_history.json")
+
+
+def test_a_stage_reruns_when_its_command_or_the_code_changed(tmp_path, monkeypatch, capsys):
+    """A finished stage is skipped only for the same command on the same code: a tool whose defaults changed
+    (same command line) reruns it, and its outputs are removed first."""
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "tools"))
+    import benchmark_distillation as tool
+    output = tmp_path / "output"
+    marker = tmp_path / "runs.txt"
+    args = ["-c", f"open({str(marker)!r}, 'a').write('x')"]
+
+    def run_stage(code=None, command=args):
+        stages = tool.Stages(str(tmp_path), total=1)
+        if code is not None:
+            stages.code = code
+        output.mkdir(exist_ok=True)
+        stages.run("stage", command, [str(output)])
+        return stages
+
+    assert run_stage().skipped == [] and marker.read_text() == "x"
+    assert run_stage().skipped == ["stage"] and marker.read_text() == "x"  # same command, same code: skipped
+    (output / "stale").write_text("")
+    capsys.readouterr()
+    assert run_stage(code="other").skipped == [] and marker.read_text() == "xx"
+    assert "removing" in capsys.readouterr().out and not (output / "stale").exists()
+    assert run_stage(code="other").skipped == ["stage"]
+    assert run_stage(code="other", command=args + ["again"]).skipped == [] and marker.read_text() == "xxx"
+    assert len(tool.code_fingerprint()) == 64
