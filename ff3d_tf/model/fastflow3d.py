@@ -154,14 +154,16 @@ class FastFlow3D(keras.Model):
         [B,N0,3] (m/s, float32; the flow without the grid part and the bias), pillar_ids_t0 [B,N0], point_valid_t0
         [B,N0].
         """
-        enc_t0, ids_t0, valid_t0 = self.pillarize(inputs["points_xyz_t0"], inputs["point_features_t0"],
-                                                  tf.cast(inputs["point_mask_t0"], tf.bool))
-        enc_tm1, ids_tm1, valid_tm1 = self.pillarize(inputs["points_xyz_tm1_in_t0"], inputs["point_features_tm1"],
-                                                     tf.cast(inputs["point_mask_tm1"], tf.bool))
+        clouds = [(inputs[xyz], inputs[features], tf.cast(inputs[mask], tf.bool)) for xyz, features, mask in
+                  (("points_xyz_t0", "point_features_t0", "point_mask_t0"),
+                   ("points_xyz_tm1_in_t0", "point_features_tm1", "point_mask_tm1"))]
+        (ids_t0, valid_t0), (ids_tm1, valid_tm1) = [self.pillarize.cells(*cloud) for cloud in clouds]
         _, k_point, k_encoding, _ = self.head_y.composed_with(self.head_z)
         head_point_kernel = tf.concat([k_point, k_encoding], 0)  # [C + 8, 3]: (point feature, encoding) -> flow
+        # The point encoder encodes each chunk of points itself (`Pillarize.encode`): no [N, 8] encoding is stored.
         (grid_t0, grid_tm1), (point_flow_t0, _) = self.point_encoder(
-            [enc_t0, enc_tm1], [valid_t0, valid_tm1], [ids_t0, ids_tm1], point_projections=(head_point_kernel, None),
+            [self.pillarize.point_rows(xyz, features) for xyz, features, _ in clouds], [valid_t0, valid_tm1],
+            [ids_t0, ids_tm1], point_projections=(head_point_kernel, None), encode=self.pillarize.encode,
             training=training)
         return {"bev_features": tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_dtype),
                 "point_flow_t0": tf.cast(point_flow_t0, tf.float32), "pillar_ids_t0": ids_t0,

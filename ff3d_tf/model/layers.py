@@ -39,28 +39,49 @@ class Pillarize(keras.layers.Layer):
         self._size_y = (self.y_range_m[1] - self.y_range_m[0]) / self.num_pillars_y
 
     def call(self, points_xyz, point_features, point_mask):
-        x, y, z = points_xyz[..., 0], points_xyz[..., 1], points_xyz[..., 2]
-        # Indices are always computed as (x - min) * (1 / size): graph mode rewrites divisions into this form, so
-        # doing it explicitly keeps eager, graph and XLA on the same pillar for every point.
-        col_f = tf.floor((x - self.x_range_m[0]) * (1.0 / self._size_x))
-        row_f = tf.floor((y - self.y_range_m[0]) * (1.0 / self._size_y))
+        pillar_ids, valid = self.cells(points_xyz, point_features, point_mask)
+        return self.encode(self.point_rows(points_xyz, point_features), valid), pillar_ids, valid
+
+    def _columns_rows(self, x, y):
+        """Float column and row of each point's pillar (not yet checked against the grid). Always (v - min) *
+        (1 / size): graph mode rewrites divisions into this form, so doing it explicitly keeps eager, graph and XLA on
+        the same pillar for every point; and `cells` and `encode` compute it the same way."""
+        return (tf.floor((x - self.x_range_m[0]) * (1.0 / self._size_x)),
+                tf.floor((y - self.y_range_m[0]) * (1.0 / self._size_y)))
+
+    def cells(self, points_xyz, point_features, point_mask):
+        """(pillar_ids [B,N] int32, point_valid [B,N] bool) as `call` returns them, without the encoding."""
+        z = points_xyz[..., 2]
+        col_f, row_f = self._columns_rows(points_xyz[..., 0], points_xyz[..., 1])
         finite = tf.reduce_all(tf.math.is_finite(points_xyz), -1) & tf.reduce_all(
             tf.math.is_finite(point_features), -1)
         valid = (point_mask & finite & (col_f >= 0) & (col_f < self.num_pillars_x) & (row_f >= 0) &
                  (row_f < self.num_pillars_y) & (z >= self.z_range_m[0]) & (z <= self.z_range_m[1]))
         col = tf.cast(tf.where(valid, col_f, 0.0), tf.int32)
         row = tf.cast(tf.where(valid, row_f, 0.0), tf.int32)
-        cx = self.x_range_m[0] + (tf.cast(col, points_xyz.dtype) + 0.5) * self._size_x
-        cy = self.y_range_m[0] + (tf.cast(row, points_xyz.dtype) + 0.5) * self._size_y
-        cz = tf.fill(tf.shape(z), tf.constant(0.5 * (self.z_range_m[0] + self.z_range_m[1]), points_xyz.dtype))
-        channels = [cx, cy, cz, x - cx, y - cy, z - cz, point_features[..., 0], point_features[..., 1]]
-        # Masked channel by channel, then stacked: XLA builds the encoding in one pass.
-        encoding = tf.stack([tf.where(valid, c, tf.zeros_like(c)) for c in channels], -1)
         batch = tf.shape(points_xyz)[0]
         cells = self.num_pillars_x * self.num_pillars_y
         sample = tf.range(batch, dtype=tf.int32)[:, None]
         pillar_ids = tf.where(valid, sample * cells + row * self.num_pillars_x + col, batch * cells)
-        return encoding, pillar_ids, valid
+        return pillar_ids, valid
+
+    @staticmethod
+    def point_rows(points_xyz, point_features):
+        """[..., 5] = (x, y, z, l0, l1): what `encode` takes."""
+        return tf.concat([points_xyz, tf.cast(point_features, points_xyz.dtype)], -1)
+
+    def encode(self, point_rows, point_valid):
+        """The 8-D encoding [..., 8] of points given as `point_rows` [..., 5] (any leading shape: a cloud, or a chunk
+        of the point encoder's loop, which computes it there instead of reading an [N, 8] array), zero where
+        `point_valid` [...] is False."""
+        x, y, z = point_rows[..., 0], point_rows[..., 1], point_rows[..., 2]
+        col_f, row_f = self._columns_rows(x, y)
+        cx = self.x_range_m[0] + (col_f + 0.5) * self._size_x
+        cy = self.y_range_m[0] + (row_f + 0.5) * self._size_y
+        cz = tf.fill(tf.shape(z), tf.constant(0.5 * (self.z_range_m[0] + self.z_range_m[1]), point_rows.dtype))
+        channels = [cx, cy, cz, x - cx, y - cy, z - cz, point_rows[..., 3], point_rows[..., 4]]
+        # Masked channel by channel, then stacked: XLA builds the encoding in one pass.
+        return tf.stack([tf.where(point_valid, c, tf.zeros_like(c)) for c in channels], -1)
 
     def get_config(self):
         return {**super().get_config(), "num_pillars_x": self.num_pillars_x, "num_pillars_y": self.num_pillars_y,
@@ -132,7 +153,8 @@ class PointEncoder(keras.layers.Layer):
     85 m, offsets < 0.2 m, intensity ~1); a bias would be redundant with BN's beta pushed through the kernel.
 
     The points are normalised, encoded and scattered `chunk_size` at a time (`ops.chunked_segment_sum`): no [N, C]
-    feature array exists at any cloud size. The head takes a point's feature (and encoding) only through a linear
+    feature array exists at any cloud size, and with `encode` no [N, 8] encoding either (the model passes the points'
+    5 input values and `Pillarize.encode`). The head takes a point's feature (and encoding) only through a linear
     map, so the encoder applies that map chunk by chunk (`point_projections`) instead of keeping the features.
 
     Args:
@@ -140,9 +162,12 @@ class PointEncoder(keras.layers.Layer):
       num_pillars_x, num_pillars_y: grid W, H of row B's output.
       chunk_size: points (over the flattened batch) encoded and scattered at a time.
     Call:
-      encodings [B,N,8] (`Pillarize`), point_valid [B,N] bool, pillar_ids [B,N] int32 (ids of invalid points are
+      points [B,N,D]: the 8-D encodings (`Pillarize.call`), or with `encode` the rows it encodes
+        (`Pillarize.point_rows`); point_valid [B,N] bool, pillar_ids [B,N] int32 (ids of invalid points are
         ignored); or lists of them, one per cloud: the BN statistics are then joint over all clouds (both frames
         share row A).
+      encode: None, or a function (rows [..., D], valid [...]) -> encodings [..., 8] (`Pillarize.encode`) that the
+        loop applies to each chunk: no [N, 8] encoding is stored, only the statistics of training read it whole.
       point_projections: None, a kernel [C + 8, U], or (with lists) one of them (or None) per cloud: also return
         concat(point feature, encoding) @ kernel for that cloud's points, [B,N,U].
     Returns:
@@ -165,30 +190,34 @@ class PointEncoder(keras.layers.Layer):
         self.norm.build(input_shape)
         self.dense.build(input_shape)
 
-    def call(self, encodings, point_valid, pillar_ids, point_projections=None, training=False):
-        single = not isinstance(encodings, (list, tuple))
+    def call(self, points, point_valid, pillar_ids, point_projections=None, encode=None, training=False):
+        single = not isinstance(points, (list, tuple))
         if single:
-            encodings, point_valid, pillar_ids = [encodings], [point_valid], [pillar_ids]
+            points, point_valid, pillar_ids = [points], [point_valid], [pillar_ids]
             point_projections = [point_projections]
         elif point_projections is None:
-            point_projections = [None] * len(encodings)
-        encodings = [tf.cast(e, self.compute_dtype) for e in encodings]
-        # Joint statistics; the normalisation itself is applied chunk by chunk.
-        normalizer = self.norm.normalizer(encodings, list(point_valid), training=training)
+            point_projections = [None] * len(points)
+        points = [tf.cast(p, self.compute_dtype) for p in points]
+        encode = encode or (lambda encoding, valid: encoding)
+        # Joint statistics of the whole clouds' encodings in training (inference takes the moving ones, and the
+        # points only for their dtype); the normalisation itself is applied chunk by chunk.
+        normalizer = self.norm.normalizer([encode(p, v) for p, v in zip(points, point_valid)] if training else points,
+                                          list(point_valid), training=training)
         grids, projected = [], []
-        for encoding, valid, ids, projection in zip(encodings, point_valid, pillar_ids, point_projections):
-            grid, rows = self._encode_and_scatter(encoding, valid, ids, normalizer, projection)
+        for cloud, valid, ids, projection in zip(points, point_valid, pillar_ids, point_projections):
+            grid, rows = self._encode_and_scatter(cloud, valid, ids, normalizer, projection, encode)
             grids.append(grid)
             projected.append(rows)
         return (grids[0], projected[0]) if single else (grids, projected)
 
-    def _encode_and_scatter(self, encoding, point_valid, pillar_ids, normalizer, projection):
+    def _encode_and_scatter(self, points, point_valid, pillar_ids, normalizer, projection, encode):
         """One cloud: grid [B,H,W,C] (row B: segment sums over flat pillar ids) and, with a projection kernel
         [C + 8, U], the projected features [B,N,U]."""
-        batch, n, dims = tf.shape(encoding)[0], tf.shape(encoding)[1], encoding.shape[-1]
+        batch, n, dims = tf.shape(points)[0], tf.shape(points)[1], points.shape[-1]
         cells = batch * self.num_pillars_y * self.num_pillars_x
 
-        def encode(encoding, valid, weights):  # a chunk: encoding [P,8], valid [P]
+        def encode_chunk(points, valid, weights):  # a chunk: points [P,D], valid [P]
+            encoding = encode(points, valid)  # [P,8]
             mean, scale, beta, kernel = weights[:4]
             features = tf.nn.relu(ops.narrow_matmul((encoding - mean) * scale + beta, kernel))  # [P,C]
             features = tf.where(valid[:, None], features, tf.zeros_like(features))
@@ -204,8 +233,8 @@ class PointEncoder(keras.layers.Layer):
 
         weights = [*normalizer, self.dense.kernel] + ([] if projection is None else [projection])
         grid, rows = ops.chunked_segment_sum(
-            encode, tf.reshape(encoding, [-1, dims]), tf.reshape(point_valid, [-1]),
-            [tf.cast(w, encoding.dtype) for w in weights], tf.reshape(tf.where(point_valid, pillar_ids, -1), [-1]),
+            encode_chunk, tf.reshape(points, [-1, dims]), tf.reshape(point_valid, [-1]),
+            [tf.cast(w, points.dtype) for w in weights], tf.reshape(tf.where(point_valid, pillar_ids, -1), [-1]),
             cells, self.chunk_size)
         grid = tf.reshape(grid, [batch, self.num_pillars_y, self.num_pillars_x, self.units])
         return grid, (None if rows is None else tf.reshape(rows, [batch, n, -1]))

@@ -154,8 +154,9 @@ def test_flow_equals_the_table_rows_called_one_by_one(tiny_config):
 
 
 def test_point_stages_hold_no_per_point_feature_array(tiny_config):
-    """At several chunks per cloud, neither point stage has an [N, C] array (point features): memory per point stays
-    a few floats at any cloud size (at 1M points, no 256 MB feature array)."""
+    """At several chunks per cloud, neither point stage has an [N, C] array (point features) nor an [N, 8] one (the
+    encoding: each chunk computes its own from the 5 input values of its points): memory per point stays a few floats
+    at any cloud size (at 1M points, no 256 MB feature array)."""
     model = build_model(tiny_config, point_chunk_size=128)
     n, c = 1500, tiny_config.model.point_feature_dim  # n above the grid's 32 x 32 cells
     inputs = _inputs(np.random.default_rng(9), 1, n, n)
@@ -166,6 +167,8 @@ def test_point_stages_hold_no_per_point_feature_array(tiny_config):
     hlo = (encode.experimental_get_compiler_ir(inputs)(stage="optimized_hlo") +
            decode.experimental_get_compiler_ir(grid, encoded)(stage="optimized_hlo"))
     per_point = re.compile(r"f32\[(?:1,)?(\d+),(\d+)\]")
-    wide = {m.group(0) for m in per_point.finditer(hlo) if int(m.group(1)) >= n and int(m.group(2)) == c}
+    wide = {m.group(0) for m in per_point.finditer(hlo) if int(m.group(1)) >= n and int(m.group(2)) in (c, 8)}
     assert not wide, wide
-    assert "f32[128,%d]" % c in hlo  # one chunk's features
+    chunked = re.findall(r"f32\[\d+,128,8\]", hlo)  # the encoding padded to whole chunks, [K, 128, 8]
+    assert not chunked, chunked
+    assert "f32[128,%d]" % c in hlo and "f32[128,8]" in hlo  # one chunk's features and encoding
