@@ -107,10 +107,9 @@ def bf16_convolutions_faster(vendor: str, flags: tuple[str, ...]) -> tuple[bool,
 
     amx_bf16: AMX tiles (TDPBF16PS), oneDNN's avx10_1_512_amx kernels: on an Intel Xeon VM with AMX the dense
     stages' oneDNN time measured 4.8x less than float32 in inference and 4.4x in training, the paper-config forward
-    4.1x faster at 32K points and 3.0x at 1M, the training step 3.3x (benchmarks/bf16_cpu_amx.json). AMD with
-    avx512_bf16 (Zen 4 and later): the
-    paper-config forward measured 1.9x faster at 32K points and 1.35x at 1M than float32 (issue 20, mode hybrid,
-    the point encoder then in bfloat16 too; not measured again since).
+    4.1x faster at 32K points and 3.0x at 1M, the training step 3.3x (benchmarks/bf16_cpu_amx.json).
+    AMD with avx512_bf16 (Zen 4 and later): the paper-config forward measured 1.9x faster at 32K points and 1.35x at
+    1M than float32 (issue 20, mode hybrid, the point encoder then in bfloat16 too; not measured again since).
     Intel with avx512_bf16 and no AMX (an Emerald Rapids VM that hides AMX): every oneDNN bfloat16 convolution
     kernel measured slower than its float32 one (benchmarks/bf16_cpu.json: a 3x3 64 -> 64 convolution of a
     2 x 512 x 512 grid 1.7x slower, brg_conv_fwd:avx512_core_bf16 against brg_conv_fwd:avx512_core; the dense
