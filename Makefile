@@ -18,9 +18,14 @@ $(STAMP): setup.py constraints.txt Makefile
 # Test files run on TEST_WORKERS processes (pytest-xdist, whole files per process, as Bazel runs its targets side by
 # side): 1.75x faster than one process on this project's 2-core machines.
 TEST_WORKERS ?= 2
+# EMULATE_CPU=zen3 caps oneDNN and XLA to AVX2 and turns TensorFlow's oneDNN operations off, as they are on an AMD
+# Zen 3 (ff3d_tf/cpu.py, EMULATIONS); the suite prints the CPU and the caps it ran under.
+EMULATE_CPU ?=
+TEST_ENV = $(if $(EMULATE_CPU),env $$($(PY) -m ff3d_tf.cpu --env $(EMULATE_CPU)),)
 
 test: install
-	$(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile --durations=15 tests
+	@$(if $(EMULATE_CPU),$(PY) -m ff3d_tf.cpu --env $(EMULATE_CPU) >/dev/null,true)
+	$(TEST_ENV) $(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile --durations=15 tests
 
 test-slow: install
 	$(PY) -m pytest -q -m slow tests

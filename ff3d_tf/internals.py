@@ -17,6 +17,10 @@ TensorFlow (checked on tensorflow 2.21.0, with keras 3.15.1):
   - `checkpoint_reader`: a checkpoint's reader through `tf.compat.v1.train.NewCheckpointReader`: the TensorFlow 2
     form, `tf.train.load_checkpoint`, takes a prefix on some filesystems (ram://) for a directory and looks for a
     `checkpoint` state file there.
+  - `onednn_enabled`: whether TensorFlow's oneDNN operations (and with them its oneDNN CPU allocator, whose
+    statistics `tf.config.experimental.get_memory_info` reports) are on in this process, through
+    `tensorflow.python.util._pywrap_util_port.IsMklEnabled`: TensorFlow decides it at start from
+    TF_ENABLE_ONEDNN_OPTS and the CPU's features and only logs it; no `tf.*` API returns it.
   - `profiler_xspace`: the profiler's trace files (`*.xplane.pb`) as `XSpace` protos; the proto's Python class lives
     in `tensorflow.tsl.profiler.protobuf` (TensorBoard's profile plugin reads the same files; no `tf.*` API does).
 
@@ -52,6 +56,7 @@ CHECKED_ON = {
     "adam_slots": {"keras": "3.15.1"},
     "checkpoint_reader": {"tensorflow": "2.21.0"},
     "profiler_xspace": {"tensorflow": "2.21.0"},
+    "onednn_enabled": {"tensorflow": "2.21.0"},
     "hlo_to_jax_exported": {"jax": "0.10.2", "jaxlib": "0.10.2"},
     "tf2onnx_custom_op_handlers": {"tf2onnx": "1.17.0", "onnx": "1.19.1"},
 }
@@ -84,6 +89,12 @@ def checkpoint_reader(prefix: str):
     """A `CheckpointReader` of the checkpoint at `prefix` (index and data files), read as given."""
     import tensorflow as tf
     return tf.compat.v1.train.NewCheckpointReader(prefix)  # see the module docstring
+
+
+def onednn_enabled() -> bool:
+    """Whether TensorFlow's oneDNN operations are on in this process (`ff3d_tf.cpu` says when they are)."""
+    from tensorflow.python.util import _pywrap_util_port  # private: see the module docstring
+    return bool(_pywrap_util_port.IsMklEnabled())
 
 
 def profiler_xspace(path: str):

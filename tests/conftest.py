@@ -55,3 +55,14 @@ def av2_sample_records(tiny_config, tmp_path_factory):
     pair_records.write_manifest(out, manifest)
     assert av2.write_log_records(AV2_LOG, out, tiny_config, manifest)["pairs"] == 1
     return out
+
+
+def pytest_sessionstart(session):
+    """Prints the CPU the suite runs on and the caps on its libraries (`ff3d_tf.cpu`), -q or not, once (not in
+    pytest-xdist's workers): a failure that depends on the CPU can be read from the log."""
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is None or hasattr(session.config, "workerinput"):
+        return
+    from ff3d_tf import cpu, internals
+    reporter.write_line(f"CPU: {cpu.one_line(cpu.describe())}; TensorFlow's oneDNN operations "
+                        f"{'on' if internals.onednn_enabled() else 'off'}")

@@ -163,3 +163,15 @@ def test_tf2onnx_custom_op_handlers_lower_segment_sums_and_selects():
     nodes = {n.op_type: n for n in proto.graph.node}
     assert "ScatterElements" in nodes and "Where" in nodes and "UnsortedSegmentSum" not in nodes
     assert {a.name: a.s for a in nodes["ScatterElements"].attribute}.get("reduction") == b"add"
+
+
+def test_onednn_enabled_follows_tensorflows_switch():
+    """TensorFlow decides at start; a child process per setting (this process's TensorFlow is already started)."""
+    code = "from ff3d_tf import internals; print(internals.onednn_enabled())"
+    seen = {}
+    for value in ("0", "1"):
+        env = {**os.environ, "TF_ENABLE_ONEDNN_OPTS": value, "TF_CPP_MIN_LOG_LEVEL": "3"}
+        out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
+                             check=True)
+        seen[value] = out.stdout.strip().splitlines()[-1]
+    assert seen == {"0": "False", "1": "True"}

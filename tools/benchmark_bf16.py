@@ -72,15 +72,11 @@ def _run(cmd: list[str], env: dict | None = None) -> str:
 
 
 def cpu_section() -> dict:
+    from ff3d_tf import cpu
     from ff3d_tf.model import compile as compile_lib
     vendor, flags = compile_lib.cpu_bf16_support()
-    model_name = "unknown (no readable cpuinfo)"
-    if os.path.exists(compile_lib.CPUINFO_PATH):
-        with open(compile_lib.CPUINFO_PATH) as f:
-            model_name = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "")
     precision, reason = compile_lib.resolve_precision("auto", "hybrid", "CPU")
-    return {"model_name": model_name, "vendor": vendor, "bf16_flags": list(flags), "cpu_count": os.cpu_count(),
-            "auto_resolves_to": precision, "auto_reason": reason}
+    return {**cpu.describe(), "bf16_flags": list(flags), "auto_resolves_to": precision, "auto_reason": reason}
 
 
 def conv_child(runs: int) -> None:

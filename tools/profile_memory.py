@@ -31,10 +31,12 @@ import tempfile
 
 import _common
 
-from ff3d_tf import bench
+from ff3d_tf import bench, cpu
 
 # name -> environment, config overrides, trim (glibc malloc_trim(0) after every call, inside its time), what it tests.
-# Every variant names TF_ONEDNN_USE_SYSTEM_ALLOCATOR, so that the caller's environment cannot decide it.
+# Every variant names TF_ENABLE_ONEDNN_OPTS and TF_ONEDNN_USE_SYSTEM_ALLOCATOR, so that neither the caller's
+# environment nor the CPU decides them: unset, TensorFlow turns oneDNN on only on CPUs with AVX512_VNNI, AVX512_BF16
+# or AMX (`ff3d_tf.cpu`), and without oneDNN there is no BFC pool and no allocator statistics.
 _HEAP = "glibc.malloc.mmap_max=0:glibc.malloc.trim_threshold=68719476736"  # every chunk from the heap, no auto-trim
 
 
@@ -42,7 +44,8 @@ def _v(env, what, sets=(), trim=False):
     return {"env": env, "set": list(sets), "trim_after_call": trim, "what": what}
 
 
-_BFC, _SYS = {"TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "0"}, {"TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "1"}
+_BFC = {"TF_ENABLE_ONEDNN_OPTS": "1", "TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "0"}
+_SYS = {"TF_ENABLE_ONEDNN_OPTS": "1", "TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "1"}
 VARIANTS = {
     "tf_bfc_pool": _v(_BFC, "TensorFlow's default with oneDNN: tensors of >= 256 KB come from the oneDNN CPU "
                             "allocator's BFC pool, which keeps every region it grew to"),
@@ -80,12 +83,17 @@ GB = bench.GB
 
 
 def tf_memory_info() -> dict:
+    """TensorFlow's CPU allocator statistics ({current_gb, peak_gb}); where its allocator keeps none (oneDNN off:
+    TensorFlow's plain CPU allocator), both None and why."""
     import tensorflow as tf
+    from ff3d_tf import internals
     try:
         info = tf.config.experimental.get_memory_info("CPU:0")
         return {"current_gb": info["current"] / GB, "peak_gb": info["peak"] / GB}
     except (ValueError, RuntimeError) as e:
-        return {"error": str(e)[:200]}
+        why = "oneDNN operations off: TensorFlow's plain CPU allocator keeps no statistics" \
+            if not internals.onednn_enabled() else str(e)[:200]
+        return {"current_gb": None, "peak_gb": None, "unavailable": why}
 
 
 def snapshot() -> dict:
@@ -121,7 +129,8 @@ def child(args) -> dict:
     cfg = _common.load(args)
     mode = compile_lib.resolve_compile_mode(cfg.model.compile)
     rng = np.random.default_rng(0)
-    out = {"compile_mode": mode, "tensorflow_imported": snapshot()}
+    from ff3d_tf import internals
+    out = {"compile_mode": mode, "onednn_enabled": internals.onednn_enabled(), "tensorflow_imported": snapshot()}
     if args.child == "train":
         labelled, padded = bench_steps.example(cfg, rng, args.points, labels=True)
         step = bench_steps.train_steps(cfg, {mode: mode}, labelled)[mode]  # the Trainer's step, batch 1
@@ -254,7 +263,7 @@ def main(argv=None):
             f"TensorFlow's allocator stats, smaps by kind, before and after malloc_trim(0). Summary times: median over "
             f"{args.repeat} round(s) (variants in turn; `rounds` per variant), memory readings from the first round "
             f"(in full under train/infer). {args.note}").strip()
-    out = {"note": note, "cpu_count": os.cpu_count(), "load_average_at_start": load_start,
+    out = {"note": note, "cpu": cpu.describe(), "cpu_count": os.cpu_count(), "load_average_at_start": load_start,
            "load_average_at_end": load_end, "config": args.config, "overrides": args.set, "points": args.points,
            "batch": 1, "steps": args.steps, "calls": args.calls, "repeat": args.repeat, "variants": results}
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import tensorflow as tf
 
+from ff3d_tf import cpu
 from ff3d_tf.config import COMPILE_MODES
 
 RESOLVED_MODES = tuple(m for m in COMPILE_MODES if m != "auto")
@@ -45,7 +46,6 @@ PRECISIONS = ("float32", "bfloat16")  # what `resolve_precision` returns: the co
 # (Intel Cooper Lake, Sapphire Rapids and later; AMD Zen 4 and later) and AMX-BF16 (Intel Sapphire Rapids and later,
 # listed only where the OS enables the tiles; a VM may hide them).
 BF16_CPU_FLAGS = ("avx512_bf16", "amx_bf16")
-CPUINFO_PATH = "/proc/cpuinfo"
 
 
 def accelerator_type() -> str:
@@ -86,20 +86,15 @@ def xla_function(fn):
 
 
 def cpu_bf16_support(cpuinfo: str | None = None) -> tuple[str, tuple[str, ...]]:
-    """(vendor, flags): the "vendor_id" of `cpuinfo` (the text of /proc/cpuinfo; default: read `CPUINFO_PATH`), e.g.
-    "GenuineIntel" or "AuthenticAMD" ("" if none), and the flags of `BF16_CPU_FLAGS` that every processor in it lists
-    on its "flags" line. ("", ()) where the file cannot be read; () where it has no flags line (not x86)."""
-    if cpuinfo is None:
-        try:
-            with open(CPUINFO_PATH) as f:
-                cpuinfo = f.read()
-        except OSError:
-            return "", ()
-    fields = [[part.strip() for part in line.split(":", 1)] for line in cpuinfo.splitlines() if ":" in line]
-    vendor = next((value for key, value in fields if key == "vendor_id"), "")
-    flag_sets = [set(value.split()) for key, value in fields if key == "flags"]
-    common = set.intersection(*flag_sets) if flag_sets else set()
-    return vendor, tuple(f for f in BF16_CPU_FLAGS if f in common)
+    """(vendor, flags): the "vendor_id" of `cpuinfo` (the text of /proc/cpuinfo; default: this machine's,
+    `ff3d_tf.cpu.read_cpuinfo`), e.g. "GenuineIntel" or "AuthenticAMD" ("" if none), and the flags of
+    `BF16_CPU_FLAGS` that every processor in it lists and that oneDNN may use under ONEDNN_MAX_CPU_ISA
+    (`ff3d_tf.cpu.usable_flags`). ("", ()) where the file cannot be read; () where it has no flags line (not x86)."""
+    info = cpu.parse_cpuinfo(cpuinfo) if cpuinfo is not None else cpu.read_cpuinfo()
+    if info is None:
+        return "", ()
+    usable = cpu.usable_flags(info)
+    return info.vendor, tuple(f for f in BF16_CPU_FLAGS if f in usable)
 
 
 def bf16_convolutions_faster(vendor: str, flags: tuple[str, ...]) -> tuple[bool, str]:

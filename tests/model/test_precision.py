@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
+from ff3d_tf import cpu
 from ff3d_tf.config import ConfigError, load_config, replace_config
 from ff3d_tf.model import build_model
 from ff3d_tf.model import compile as compile_lib
@@ -25,6 +26,21 @@ def _cpuinfo(vendor, *flag_lines):
                    "bugs\t\t: sysret_ss_attrs\n\n" for i, line in enumerate(flag_lines))
 
 
+@pytest.fixture(autouse=True)
+def _no_isa_cap(monkeypatch):
+    """These tests describe CPUs by their cpuinfo text: a cap on this machine's oneDNN (an emulated CPU) must not
+    change what they resolve to."""
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+
+
+def test_onednn_isa_cap_removes_the_flags_it_keeps_oneDNN_from_using(monkeypatch):
+    amx = _cpuinfo(INTEL, _FLAGS_AMX)
+    for cap, expected in (("AVX2", ()), ("AVX512_CORE_VNNI", ()), ("AVX512_CORE_BF16", ("avx512_bf16",)),
+                          ("AVX10_1_512_AMX", ("avx512_bf16", "amx_bf16")), ("ALL", ("avx512_bf16", "amx_bf16"))):
+        monkeypatch.setenv("ONEDNN_MAX_CPU_ISA", cap)
+        assert compile_lib.cpu_bf16_support(amx) == (INTEL, expected), cap
+
+
 def test_cpu_flag_detection_from_cpuinfo_text(tmp_path, monkeypatch):
     support = compile_lib.cpu_bf16_support
     assert support(_cpuinfo(INTEL, _FLAGS_AMX, _FLAGS_AMX)) == (INTEL, ("avx512_bf16", "amx_bf16"))
@@ -39,9 +55,9 @@ def test_cpu_flag_detection_from_cpuinfo_text(tmp_path, monkeypatch):
     assert support("") == ("", ())
     path = tmp_path / "cpuinfo"
     path.write_text(_cpuinfo(AMD, _FLAGS_AVX512_BF16))
-    monkeypatch.setattr(compile_lib, "CPUINFO_PATH", str(path))
+    monkeypatch.setattr(cpu, "CPUINFO_PATH", str(path))
     assert support() == (AMD, ("avx512_bf16",))
-    monkeypatch.setattr(compile_lib, "CPUINFO_PATH", str(tmp_path / "missing"))
+    monkeypatch.setattr(cpu, "CPUINFO_PATH", str(tmp_path / "missing"))
     assert support() == ("", ())  # unreadable (not Linux): no flags
 
 
@@ -79,7 +95,7 @@ def test_config_accepts_true_false_auto(tiny_config):
 def _with_cpuinfo(monkeypatch, tmp_path, vendor, flag_line):
     path = tmp_path / "cpuinfo"
     path.write_text(_cpuinfo(vendor, flag_line, flag_line))
-    monkeypatch.setattr(compile_lib, "CPUINFO_PATH", str(path))
+    monkeypatch.setattr(cpu, "CPUINFO_PATH", str(path))
 
 
 def test_build_model_resolves_auto_and_logs_it(tiny_config, tmp_path, monkeypatch, caplog):
