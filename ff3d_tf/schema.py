@@ -72,10 +72,15 @@ FRAME_KEYS = ("points_xyz", "intensity", "elongation", "flow_mps", "class_id", "
 
 PAIR_T0_POINT_KEYS = ("points_xyz_t0", "point_features_t0", "flow_mps_t0", "class_id_t0")  # [N0, ...] per point
 PAIR_TM1_POINT_KEYS = ("points_xyz_tm1_in_t0", "point_features_tm1")  # [N1, ...] per point
-# Optional per-t0-point keys of a pair (pair records carry them when their source has them; `ff3d_tf.data.pairs`
-# masks and pads them with the t0 points): pseudo-label flow (m/s, same convention as flow_mps_t0), the Argoverse 2
-# ground mask (True = ground by the log's ground-height raster) and the Argoverse 2 category index (-1: none).
-PAIR_T0_EXTRA_POINT_KEYS = ("flow_mps_pseudo_t0", "is_ground_t0", "category_t0")
+# Optional per-point keys of a pair (pair records carry them when their source has them; `ff3d_tf.data.pairs` masks
+# and pads them with their cloud's points). t0: pseudo-label flow (m/s, same convention as flow_mps_t0) and whether a
+# point has one (False: outside the fitted region, ground, or its pair's fit failed; no label, not a zero label), the
+# Argoverse 2 ground mask (True = ground by the log's ground-height raster) and the Argoverse 2 category index (-1:
+# none). t-1: the partner cloud's ground mask by the same raster.
+PSEUDO_FLOW_KEY, PSEUDO_VALID_KEY = "flow_mps_pseudo_t0", "pseudo_valid_t0"
+PAIR_T0_EXTRA_POINT_KEYS = (PSEUDO_FLOW_KEY, PSEUDO_VALID_KEY, "is_ground_t0", "category_t0")
+PAIR_TM1_EXTRA_POINT_KEYS = ("is_ground_tm1",)
+PAIR_EXTRA_POINT_KEYS = PAIR_T0_EXTRA_POINT_KEYS + PAIR_TM1_EXTRA_POINT_KEYS
 # What the model reads of a batched example (labels and poses are not model input).
 MODEL_INPUT_KEYS = ("points_xyz_t0", "point_features_t0", "point_mask_t0", "points_xyz_tm1_in_t0",
                     "point_features_tm1", "point_mask_tm1")

@@ -9,30 +9,34 @@ In one process:
   distance grids' build time, and seconds per Adam step with the distance transform and with exact nearest neighbours
   (each timed over a capped number of steps after a warm-up that compiles; the exact one is far slower). Seconds per
   pair = grid build + seconds per step x steps, at the steps the Argoverse pair took to stop early and at the cap.
-- av2_sample: the fit on the Argoverse 2 sample pair (`nsfp_av2_check.av2_sample_check`), EPE against Argoverse's
-  flow, beside the issue's bar (three-way EPE <= 0.08 m, bucketed normalized dynamic EPE <= 0.6) with
-  `meets_issue_bar`. At --av2_subsample k (default 4: every 4th point of both sweeps, the scores of those points) the
-  section is of that sparser pair, not of the full-density labels the bar is set for (k = 1: tens of minutes on two
-  CPU cores); `subsample` and `max_iterations` are recorded in it.
+- av2_sample: what a user runs on the Argoverse 2 sample log, in child processes: `tools/write_pair_records.py
+  --source av2`, then `tools/pseudo_label.py` with its defaults (plus --av2_args), whose own scores against
+  Argoverse's labels (pseudo_label_scores.json: the challenge's arithmetic, beside zero flow) and counts are kept,
+  beside the bar (three-way EPE <= 0.08 m, bucketed normalized dynamic EPE <= 0.6) with `meets_bar`, the wall time
+  and the command lines.
 Each section is written to --out as it completes; a rerun keeps the sections already there (--fresh to redo; an
-av2_sample section of another subsample or step cap is redone).
+av2_sample section of other --av2_args is redone).
 """
 import argparse
 import dataclasses
 import json
 import os
-import platform
+import shlex
+import subprocess
+import sys
+import tempfile
 import time
 
 import _common  # noqa: F401
 
 import numpy as np
 
-from ff3d_tf import bench, metrics_av2
+from ff3d_tf import bench, cpu, metrics_av2
 from ff3d_tf.data.pairs import bucket_size
-from ff3d_tf.labels import nsfp, nsfp_av2_check
+from ff3d_tf.labels import nsfp, pseudo_records
 
-ISSUE_BAR = {"three_way/mean_epe_m": 0.08, "bucketed/mean_dynamic_norm_epe": 0.6}  # issue 18, at most
+BAR = {"three_way/mean_epe_m": 0.08, "bucketed/mean_dynamic_norm_epe": 0.6}  # at most, at full density
+TOOLS = os.path.dirname(os.path.abspath(__file__))
 
 
 def _save(path: str, result: dict) -> None:
@@ -65,19 +69,27 @@ def _speed(points: int, dt_steps: int, exact_steps: int, options: nsfp.NsfpOptio
     return out
 
 
-def _av2(log_dir: str, subsample: int, max_iterations: int) -> dict:
-    options = dataclasses.replace(nsfp_av2_check.AV2_NSFP_OPTIONS, max_iterations=max_iterations)
+def _av2(log_dir: str, extra_args: list[str]) -> dict:
     load_average = bench.load_average()
-    start = time.perf_counter()
-
-    def progress(steps, loss):
-        print(f"av2 sample: {steps} steps, best loss {loss:.5f}, {time.perf_counter() - start:.0f} s", flush=True)
-    av2 = nsfp_av2_check.av2_sample_check(log_dir, options, subsample=subsample, progress=progress)
-    return {"max_iterations": max_iterations, "options": dataclasses.asdict(options), **av2,
-            "wall_s": time.perf_counter() - start,
-            "load_average_at_start": load_average,
-            "issue_bar_at_most": ISSUE_BAR, "issue_bar_is_for": "every point of the pair (subsample 1)",
-            "meets_issue_bar": all(av2["nsfp"][k] <= bar for k, bar in ISSUE_BAR.items())}
+    with tempfile.TemporaryDirectory() as tmp:
+        records, pseudo = os.path.join(tmp, "records"), os.path.join(tmp, "pseudo")
+        commands = [[sys.executable, os.path.join(TOOLS, "write_pair_records.py"), "--source", "av2", "--input",
+                     log_dir, "--out_dir", records],
+                    [sys.executable, os.path.join(TOOLS, "pseudo_label.py"), "--input", records, "--out_dir", pseudo,
+                     *extra_args]]
+        start = time.perf_counter()
+        for command in commands:
+            print("$", shlex.join(command[1:]), flush=True)
+            subprocess.run(command, check=True)
+        wall_s = time.perf_counter() - start
+        with open(os.path.join(pseudo, pseudo_records.SCORES_NAME)) as f:
+            scores = json.load(f)
+        with open(os.path.join(pseudo, "pseudo_label_counts.json")) as f:
+            counts = json.load(f)
+    return {"args": extra_args, "commands": [shlex.join(["python", os.path.relpath(c[1], os.path.dirname(TOOLS)),
+                                                          *c[2:]]) for c in commands],
+            **scores, "counts": counts, "wall_s_both_tools": wall_s, "load_average_at_start": load_average,
+            "bar_at_most": BAR, "meets_bar": all(scores["nsfp"][k] <= bar for k, bar in BAR.items())}
 
 
 def main():
@@ -88,10 +100,7 @@ def main():
     p.add_argument("--exact_steps", type=int, default=3, help="Adam steps timed with exact nearest neighbours")
     p.add_argument("--av2_log", default=os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
                                                      "data", "av2_sample_log"))
-    p.add_argument("--av2_subsample", type=int, default=4,
-                   help="fit and score every k-th point of both sweeps (1: every point, tens of minutes)")
-    p.add_argument("--av2_max_iterations", type=int, default=None,
-                   help="step cap of the av2 fit (default: the options' max_iterations)")
+    p.add_argument("--av2_args", default="", help="extra flags of tools/pseudo_label.py, e.g. '--fit_every 8'")
     p.add_argument("--skip_av2", action="store_true")
     p.add_argument("--fresh", action="store_true", help="redo sections already in --out")
     args = p.parse_args()
@@ -99,24 +108,22 @@ def main():
     if os.path.exists(args.out) and not args.fresh:
         with open(args.out) as f:
             result = json.load(f)
+    job_fit = pseudo_records.JobOptions().nsfp
     # The machine and options of the speed section: kept with it when a rerun redoes only the av2 section.
-    result.setdefault("machine", {"cpu_count": os.cpu_count(), "processor": platform.processor() or platform.machine(),
-                                  "load_average_at_start": bench.load_average()})
-    result.setdefault("options", dataclasses.asdict(nsfp_av2_check.AV2_NSFP_OPTIONS))
+    result.setdefault("machine", {**cpu.describe(), "load_average_at_start": bench.load_average()})
+    result.setdefault("options", dataclasses.asdict(job_fit))
     if "speed" not in result:
-        result["speed"] = _speed(args.points, args.dt_steps, args.exact_steps, nsfp_av2_check.AV2_NSFP_OPTIONS)
+        result["speed"] = _speed(args.points, args.dt_steps, args.exact_steps, job_fit)
         _save(args.out, result)
-    max_iterations = args.av2_max_iterations or nsfp_av2_check.AV2_NSFP_OPTIONS.max_iterations
-    stored = result.get("av2_sample", {})
-    if not args.skip_av2 and (stored.get("subsample"), stored.get("max_iterations")) != (args.av2_subsample,
-                                                                                         max_iterations):
-        result["av2_sample"] = _av2(args.av2_log, args.av2_subsample, max_iterations)
+    extra_args = shlex.split(args.av2_args)
+    if not args.skip_av2 and result.get("av2_sample", {}).get("args") != extra_args:
+        result["av2_sample"] = _av2(args.av2_log, extra_args)
         _save(args.out, result)
     speed = result["speed"]
-    steps = {"max_iterations": nsfp_av2_check.AV2_NSFP_OPTIONS.max_iterations}
+    steps = {"max_iterations": job_fit.max_iterations}
     av2 = result.get("av2_sample", {})
-    if av2 and av2["iterations"] < av2["max_iterations"]:  # it stopped early (not at a step cap)
-        steps[f"av2_sample_steps_subsample_{av2['subsample']}"] = av2["iterations"]
+    if av2:
+        steps["av2_sample_steps"] = av2["counts"]["nsfp_iterations"]
     per_pair = {}
     for name in ("distance_transform", "exact_nearest_neighbours"):
         grid_s = speed["distance_transform"]["grid_build_s_both_clouds"] if name == "distance_transform" else 0.0
@@ -126,9 +133,8 @@ def main():
                f"{speed['distance_transform']['timed_steps']} steps (distance transform) and "
                f"{speed['exact_nearest_neighbours']['timed_steps']} steps (exact nearest neighbours, capped: one "
                "full exact fit would take hours here), same process, the benchmark cloud of "
-               f"{speed['points']} points; at the steps the Argoverse sample pair took to stop early "
-               "(av2_sample_steps_subsample_k: its fit on every k-th point; absent when that fit ran to its step "
-               "cap) and at the cap (max_iterations)",
+               f"{speed['points']} points; at the steps the Argoverse sample pair's fit took (av2_sample_steps) "
+               "and at the cap (max_iterations)",
         **per_pair}
     _save(args.out, result)
     print(json.dumps(result, indent=1))

@@ -19,10 +19,11 @@ _LOG = logging.getLogger(__name__)
 
 
 def merge_counts(all_counts) -> dict:
+    """Per key: numbers summed, lists (e.g. the names of failed items) concatenated."""
     out: dict = {}
     for counts in all_counts:
         for k, v in counts.items():
-            out[k] = out.get(k, 0) + v
+            out[k] = out[k] + v if k in out else v
     return out
 
 
@@ -69,7 +70,8 @@ def run_per_input(inputs: list[str], process: Callable[[str], dict], out_dir: st
         def process(self, path):
             counts = process(path)
             for k, v in counts.items():
-                beam.metrics.Metrics.counter(job_name, k).inc(int(v))
+                if isinstance(v, (int, float)):
+                    beam.metrics.Metrics.counter(job_name, k).inc(int(v))
             # One worker's view of the job: with several workers each reports the inputs it did.
             _LOG.info("%s: done %s (%s): %s", job_name, path, self.progress.step(), counts)
             yield counts

@@ -40,6 +40,11 @@ TIMESTAMP_KEY, PARTNER_TIMESTAMP_KEY, SEQUENCE_KEY = "timestamp_ns_t0", "timesta
 METADATA_KEYS = (TIMESTAMP_KEY, PARTNER_TIMESTAMP_KEY, SEQUENCE_KEY)
 
 
+def pair_gap_s(example: dict) -> float:
+    """The time between a record's two clouds (s, > 0 whichever `Manifest.partner`)."""
+    return abs(int(example[PARTNER_TIMESTAMP_KEY]) - int(example[TIMESTAMP_KEY])) * 1e-9
+
+
 class RecordField(NamedTuple):
     exact: str  # stored dtype with precision "exact"
     compact: str  # ... and with "compact"
@@ -56,14 +61,16 @@ RECORD_FIELDS = {
     "class_id_t0": RecordField("int8", "int8", "int32", (), _T0),
     "points_xyz_tm1_in_t0": RecordField("float32", "float32", "float32", (3,), _TM1),
     "point_features_tm1": RecordField("float32", "float16", "float32", (2,), _TM1),
-    # Optional (schema.PAIR_T0_EXTRA_POINT_KEYS): present in a file when its manifest lists them.
+    # Optional (schema.PAIR_EXTRA_POINT_KEYS): present in a file when its manifest lists them.
     "flow_mps_pseudo_t0": RecordField("float32", "float16", "float32", (3,), _T0),
+    "pseudo_valid_t0": RecordField("uint8", "uint8", "bool", (), _T0),
     "is_ground_t0": RecordField("uint8", "uint8", "bool", (), _T0),
     "category_t0": RecordField("int8", "int8", "int32", (), _T0),
+    "is_ground_tm1": RecordField("uint8", "uint8", "bool", (), _TM1),
 }
 POSE_KEYS = ("pose_t0", "pose_tm1")  # float64 [4, 4] each
 REQUIRED_POINT_KEYS = schema.PAIR_T0_POINT_KEYS + schema.PAIR_TM1_POINT_KEYS
-assert set(RECORD_FIELDS) == set(REQUIRED_POINT_KEYS) | set(schema.PAIR_T0_EXTRA_POINT_KEYS)
+assert set(RECORD_FIELDS) == set(REQUIRED_POINT_KEYS) | set(schema.PAIR_EXTRA_POINT_KEYS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,9 +100,9 @@ class Manifest:
             raise bad("precision", f"{self.precision!r}: one of {PRECISIONS}")
         if self.compression not in COMPRESSIONS:
             raise bad("compression", f"{self.compression!r}: one of {COMPRESSIONS}")
-        unknown = set(self.extras) - set(schema.PAIR_T0_EXTRA_POINT_KEYS)
+        unknown = set(self.extras) - set(schema.PAIR_EXTRA_POINT_KEYS)
         if unknown:
-            raise bad("extras", f"unknown keys {sorted(unknown)}; known: {schema.PAIR_T0_EXTRA_POINT_KEYS}")
+            raise bad("extras", f"unknown keys {sorted(unknown)}; known: {schema.PAIR_EXTRA_POINT_KEYS}")
         if self.partner not in ("previous", "next"):
             raise bad("partner", f"{self.partner!r}: previous or next")
         problem = schema.lidar_selection_problem(self.laser_names, self.returns)

@@ -74,6 +74,7 @@ def make_pair(frame_tm1: dict, frame_t0: dict, cfg: ExperimentConfig, seed=None)
 
 
 _T0_KEYS = schema.PAIR_T0_POINT_KEYS + schema.PAIR_T0_EXTRA_POINT_KEYS  # every per-t0-point key a pair may hold
+_TM1_KEYS = schema.PAIR_TM1_POINT_KEYS + schema.PAIR_TM1_EXTRA_POINT_KEYS  # ... and per-t-1-point key
 
 
 def _keep(ex: dict, keep_t0, keep_tm1) -> dict:
@@ -183,15 +184,20 @@ def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_r
 
 def _pairs_of_records(path, cfg: ExperimentConfig, manifest, extras: tuple, metadata: bool, skip: bool,
                       training_labels: bool):
-    wanted = set(extras) | ({"flow_mps_pseudo_t0"} if training_labels and cfg.data.labels == "pseudo" else set())
-    read = tuple(k for k in schema.PAIR_T0_EXTRA_POINT_KEYS if k in wanted)
+    pseudo = training_labels and cfg.data.labels == "pseudo"
+    # Training on pseudo-labels reads them and, where the records have it, which points have one (the loss skips
+    # the others).
+    if pseudo:
+        extras_read = {schema.PSEUDO_FLOW_KEY} | ({schema.PSEUDO_VALID_KEY} & set(manifest.extras))
+    wanted = set(extras) | (extras_read if pseudo else set())
+    read = tuple(k for k in schema.PAIR_EXTRA_POINT_KEYS if k in wanted)
 
     def to_example(record):
         points = {k: record[k] for k in schema.PAIR_T0_POINT_KEYS + schema.PAIR_TM1_POINT_KEYS + read}
-        if "flow_mps_pseudo_t0" in read and training_labels and cfg.data.labels == "pseudo":
-            points["flow_mps_t0"] = points["flow_mps_pseudo_t0"]
-            if "flow_mps_pseudo_t0" not in extras:
-                del points["flow_mps_pseudo_t0"]
+        if pseudo:
+            points["flow_mps_t0"] = points[schema.PSEUDO_FLOW_KEY]
+            if schema.PSEUDO_FLOW_KEY not in extras:
+                del points[schema.PSEUDO_FLOW_KEY]
         micros = record[pair_records.TIMESTAMP_KEY] // 1000  # the seed of the decoding path (`_pairs_of_file`)
         ex = _apply_studies(points, cfg, tf.stack([tf.cast(micros % 2147483647, tf.int32), 7]))
         ex["pose_t0"], ex["pose_tm1"] = record["pose_t0"], record["pose_tm1"]
@@ -217,7 +223,7 @@ def check_records_match(manifest, cfg: ExperimentConfig, where: str) -> None:
     if d.labels == "human" and not manifest.human_labels:
         raise ConfigError(f"{where}: these pair records hold no human flow labels (raw LiDAR): train on their "
                           "pseudo-labels (tools/pseudo_label.py, data.labels=pseudo); evaluation needs labelled data")
-    if d.labels == "pseudo" and "flow_mps_pseudo_t0" not in manifest.extras:
+    if d.labels == "pseudo" and schema.PSEUDO_FLOW_KEY not in manifest.extras:
         raise ConfigError(f"{where}: data.labels=pseudo, but these records hold no pseudo-labels "
                           "(write them with tools/pseudo_label.py)")
 
@@ -250,7 +256,7 @@ def padded_singletons(ds: tf.data.Dataset, bucket_base: int):
     input without a tf.data pipeline per example."""
     for batch in batch_examples(ds, 1, bucket_base).prefetch(2):
         n, n_tm1 = int(batch["num_points_t0"][0]), int(batch["num_points_tm1"][0])
-        length = {**dict.fromkeys(_T0_KEYS, n), **dict.fromkeys(schema.PAIR_TM1_POINT_KEYS, n_tm1)}
+        length = {**dict.fromkeys(_T0_KEYS, n), **dict.fromkeys(_TM1_KEYS, n_tm1)}
         yield batch, {k: v[0, :length[k]] if k in length else v[0]
                       for k, v in batch.items() if not k.startswith("point_mask_")}
 
@@ -261,7 +267,7 @@ def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_
 
     def pad(batch):
         out = dict(batch)
-        for suffix, keys in (("t0", _T0_KEYS), ("tm1", schema.PAIR_TM1_POINT_KEYS)):
+        for suffix, keys in (("t0", _T0_KEYS), ("tm1", _TM1_KEYS)):
             n = tf.shape(batch[keys[0]])[1]
             target = bucket_size_tf(n, bucket_base)
             for k in (k for k in keys if k in batch):

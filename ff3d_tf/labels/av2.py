@@ -6,8 +6,9 @@ Records for the challenge pair each sweep t (the t0 cloud) with the NEXT sweep t
 the challenge scores the points of sweep t with their displacement to sweep t+1. The label is the model's quantity,
 the motion from the partner cloud to the t0 cloud divided by the gap, (p_t - p_t+1) / dt, so it is minus the
 velocity; the challenge's flow (metres to the next sweep) is -flow_mps_t0 * dt. Each record also holds the ground
-mask (`is_ground_t0`, the log's ground raster) and the Argoverse category of every point (`category_t0`, the
-`classes` values of Argoverse's own flow labels; 0 = in no cuboid). The last sweep of a log has no partner.
+masks of both clouds (`is_ground_t0`, `is_ground_tm1`: the log's ground raster) and the Argoverse category of every
+point (`category_t0`, the `classes` values of Argoverse's own flow labels; 0 = in no cuboid). The last sweep of a log
+has no partner.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from ff3d_tf.data.pairs import make_pair
 from ff3d_tf.labels.box_flow import bootstrap_flow, points_in_boxes
 
 _LOG = logging.getLogger(__name__)
-AV2_EXTRAS = ("is_ground_t0", "category_t0")
+AV2_EXTRAS = ("is_ground_t0", "category_t0", "is_ground_tm1")
 
 
 def labelled_pair(log_dir: str, index: int = 1) -> tuple[dict, dict]:
@@ -89,6 +90,7 @@ def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig) -> dict:
                           np.int32)
     ex["category_t0"] = categories[owner]  # owner -1 (no cuboid) reads the appended 0
     ex["is_ground_t0"] = argoverse2.is_ground(log_dir, f_t0["points_xyz"], f_t0["pose"])
+    ex["is_ground_tm1"] = argoverse2.is_ground(log_dir, f_next["points_xyz"], f_next["pose"])  # the partner's
     ex[pair_records.TIMESTAMP_KEY], ex[pair_records.PARTNER_TIMESTAMP_KEY] = ts_t0, ts_next
     ex[pair_records.SEQUENCE_KEY] = os.path.basename(os.path.normpath(log_dir))
     return ex

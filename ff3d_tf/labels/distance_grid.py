@@ -218,6 +218,19 @@ def grid_geometry(clouds_xyz: list[np.ndarray], cell_m: float, margin_m: float, 
     return lo.astype(np.float32), dims.astype(np.int32)
 
 
+def fitted_grid_geometry(clouds_xyz: list[np.ndarray], cell_m: float, margin_m: float, max_cells: int,
+                         box_m: tuple | None = None):
+    """(origin_m, dims, cell) of `grid_geometry` at the finest cell of `cell_m` x 1.25^k (k = 0, 1, ...) whose grid has
+    at most `max_cells` nodes: a region too large for the finest cell gets a coarser distance transform, never a
+    refusal (the region itself is the caller's to bound)."""
+    for _ in range(64):
+        try:
+            return (*grid_geometry(clouds_xyz, cell_m, margin_m, max_cells, box_m), cell_m)
+        except ValueError:
+            cell_m *= 1.25
+    raise ValueError(f"fitted_grid_geometry: no cell fits {max_cells} nodes")
+
+
 def build_distance_grid(points_xyz, point_mask, origin_m, dims, cell_m: float, band_cells: int = 4,
                         coarse_band_cells: int = 3, factors: tuple = PYRAMID_FACTORS) -> DistanceGrid:
     """The distance transform of the valid points of `points_xyz` [P,3] on the given grid (module docstring): at a

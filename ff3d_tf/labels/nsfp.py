@@ -50,7 +50,8 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf.data.pairs import bucket_size
-from ff3d_tf.labels.distance_grid import (DistanceGrid, build_distance_grid, chamfer_loss, grid_geometry,
+from ff3d_tf.metrics_av2 import MAX_DISTANCE_M
+from ff3d_tf.labels.distance_grid import (DistanceGrid, build_distance_grid, chamfer_loss, fitted_grid_geometry,
                                           nearest_index, reverse_chamfer_loss)
 from ff3d_tf.model.step import adam_apply
 
@@ -78,11 +79,12 @@ class NsfpOptions:
     exact_chamfer: bool = False  # exact nearest neighbours (O(N*M) a step; for checking) instead of the grid
     squared_chamfer: bool = True  # mean squared distance (NSFP's Chamfer; see the module docstring), else mean distance
     truncate_m: float | None = None  # points this far or farther from the target count 0 (NSFP: NSFP_TRUNCATE_M)
-    grid_cell_m: float = 0.1  # finest level of the distance transform (FastNSF: 0.1 m)
+    grid_cell_m: float = 0.1  # finest level of the distance transform (FastNSF: 0.1 m), coarsened by 1.25x steps
+    # where the fitted region would need more than max_grid_cells nodes
     grid_margin_m: float = 0.5  # grid bounds: the kept clouds' bounding box (or crop box) grown by this much
     band_cells: int = 4  # finest level exact wherever the nearest point is within this many cells
     coarse_band_cells: int = 3  # the same on the coarser levels
-    max_grid_cells: int = 1 << 26  # refuse grids larger than this (memory: 4 bytes a node, two grids a pair)
+    max_grid_cells: int = 1 << 26  # largest grid (memory: 4 bytes a node, two grids a pair); see grid_cell_m
     remove_ground_below_z_m: float | None = None  # drop points with z below this (vehicle frame), None: keep all
     crop_xy_half_extent_m: float | None = None  # keep points with |x| and |y| at most this, None: no crop
     crop_z_range_m: tuple[float, float] | None = None  # keep points with z in [lo, hi] (ZeroFlow: (-3, 3))
@@ -132,12 +134,14 @@ def _is_real(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-# The fit measured best on the Argoverse 2 sample pair (README, "Label-free training"; `nsfp_av2_check`): NSFP's
-# two-sided Chamfer (reverse correspondences found every 5 steps), a learning rate of 0.002 (NSFP: 0.008), no weight
-# decay (NSFP: 1e-4), early stopping at 1e-5 m^2 (NSFP: 1e-4; a dense pair's mean squared distances are small), fitted
-# to every 4th point (full density: three-way EPE 0.065 m, bucketed normalized dynamic EPE 0.566, 716 steps). The
+# The pseudo-label job's fit (`ff3d_tf.labels.pseudo_records`), chosen on the Argoverse 2 sample pair (its scores:
+# benchmarks/nsfp_cpu.json, docs): NSFP's two-sided Chamfer (reverse correspondences found every 5 steps), a learning
+# rate of 0.002 (NSFP: 0.008), no weight decay (NSFP: 1e-4), early stopping at 1e-5 m^2 (NSFP: 1e-4; a dense pair's
+# mean squared distances are small), fitted to every 4th point; the fitted region bounded whatever the sweep's
+# range: the Argoverse 2 challenge's box in x and y (`metrics_av2.MAX_DISTANCE_M`) and ZeroFlow's z range. The
 # pseudo-label job's defaults; `NsfpOptions()` itself keeps NSFP's published settings.
-MEASURED_FIT_OPTIONS = NsfpOptions(learning_rate=2e-3, weight_decay=0.0, reverse_every=5, min_delta=1e-5, fit_every=4)
+MEASURED_FIT_OPTIONS = NsfpOptions(learning_rate=2e-3, weight_decay=0.0, reverse_every=5, min_delta=1e-5, fit_every=4,
+                                   crop_xy_half_extent_m=MAX_DISTANCE_M, crop_z_range_m=(-3.0, 3.0))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -148,6 +152,7 @@ class NsfpResult:
     loss: float  # best objective (forward + cycle Chamfer; m^2, or m with squared_chamfer=False); its flow is returned
     grid_s: float  # seconds building the distance grids (0 with exact_chamfer)
     fit_s: float  # seconds in the fit
+    grid_cell_m: float = float("nan")  # the distance transform's finest cell (>= options.grid_cell_m), NaN if no fit
 
 
 # --- the prior and its per-pair fit ----------------------------------------------------------------------------------
@@ -330,16 +335,16 @@ def nsfp_flow(points_xyz_t0, points_xyz_tm1_in_t0, dt_s: float, options: NsfpOpt
         return NsfpResult(flow_mps, np.zeros(len(xyz_t0), bool), 0, float("nan"), 0.0, 0.0)
     kept_t0, kept_tm1 = xyz_t0[keep_t0], xyz_tm1[keep_tm1]
     box = _crop_box(options)
-    origin_m, dims = grid_geometry([kept_t0, kept_tm1], options.grid_cell_m, options.grid_margin_m,
-                                   options.max_grid_cells, box)
+    origin_m, dims, cell_m = fitted_grid_geometry([kept_t0, kept_tm1], options.grid_cell_m, options.grid_margin_m,
+                                                  options.max_grid_cells, box)
     # Centred coordinates: the MLP sees the scene around 0, and the nearest-neighbour matmul keeps its precision.
-    centre_m = (origin_m + (dims - 1) * np.float32(options.grid_cell_m) / 2).astype(np.float32)
+    centre_m = (origin_m + (dims - 1) * np.float32(cell_m) / 2).astype(np.float32)
     kept_t0, kept_tm1, origin_m = kept_t0 - centre_m, kept_tm1 - centre_m, origin_m - centre_m
     fit_t0, fit_tm1 = kept_t0[:: options.fit_every], kept_tm1[:: options.fit_every]
     size = bucket_size(max(len(fit_t0), len(fit_tm1)), options.point_bucket_base)
     padded_t0, padded_tm1 = _padded(fit_t0, size), _padded(fit_tm1, size)
     start = time.perf_counter()
-    grids = _grids(padded_t0, padded_tm1, origin_m, dims, options)
+    grids = _grids(padded_t0, padded_tm1, origin_m, dims, cell_m, options)
     grid_s = time.perf_counter() - start if not options.exact_chamfer else 0.0
     start = time.perf_counter()
     state = _fit(padded_t0, padded_tm1, grids, size, options, progress)
@@ -348,10 +353,12 @@ def nsfp_flow(points_xyz_t0, points_xyz_tm1_in_t0, dt_s: float, options: NsfpOpt
     else:
         motion_m = _evaluate_mlp(state.best_params[: 2 * (options.hidden_layers + 1)], kept_t0)
     flow_mps[keep_t0] = motion_m / np.float32(dt_s)
-    return NsfpResult(flow_mps, keep_t0, int(state.step), float(state.best_loss), grid_s, time.perf_counter() - start)
+    return NsfpResult(flow_mps, keep_t0, int(state.step), float(state.best_loss), grid_s, time.perf_counter() - start,
+                      float(cell_m))
 
 
-def _grids(padded_t0, padded_tm1, origin_m, dims, options: NsfpOptions) -> tuple[DistanceGrid, DistanceGrid]:
+def _grids(padded_t0, padded_tm1, origin_m, dims, cell_m: float, options: NsfpOptions) -> tuple[DistanceGrid,
+                                                                                                DistanceGrid]:
     """(t-1 grid, t0 grid) of the fit: distance transforms of the padded clouds, or placeholders with exact_chamfer
     (the t-1 grid twice without the cycle term)."""
     if options.exact_chamfer:
@@ -359,8 +366,7 @@ def _grids(padded_t0, padded_tm1, origin_m, dims, options: NsfpOptions) -> tuple
         return placeholder, placeholder
 
     def grid(padded):
-        return build_distance_grid(*padded, origin_m, dims, options.grid_cell_m, options.band_cells,
-                                   options.coarse_band_cells)
+        return build_distance_grid(*padded, origin_m, dims, cell_m, options.band_cells, options.coarse_band_cells)
     grid_tm1 = grid(padded_tm1)
     return grid_tm1, grid(padded_t0) if options.backward_cycle else grid_tm1
 

@@ -56,10 +56,13 @@ def batch_flow_loss(batch, outputs, background_weight: float, global_batch_size:
     over the batch and divided by the global batch (`tf.nn.compute_average_loss`).
 
     batch: flow_mps_t0 [B,N,3] (the pseudo-labels when training on them), class_id_t0 [B,N], point_mask_t0 [B,N];
+    with pseudo-labels, optionally pseudo_valid_t0 [B,N] (points without a pseudo-label do not count);
     outputs: the model's flow_mps, point_valid.
     """
     valid = outputs["point_valid"] & batch["point_mask_t0"]
     if pseudo_labels:
+        if schema.PSEUDO_VALID_KEY in batch:
+            valid &= batch[schema.PSEUDO_VALID_KEY]
         per_sample = per_sample_distillation_loss(batch["flow_mps_t0"], outputs["flow_mps"], valid)
     else:
         per_sample = per_sample_flow_loss(batch["flow_mps_t0"], outputs["flow_mps"], batch["class_id_t0"], valid,

@@ -169,7 +169,9 @@ def _fake_pair(n0=5, n1=4):
             "points_xyz_tm1_in_t0": rng.normal(size=(n1, 3)).astype(np.float32),
             "point_features_tm1": rng.random((n1, 2), np.float32), "pose_t0": np.eye(4), "pose_tm1": np.eye(4),
             "flow_mps_pseudo_t0": rng.normal(size=(n0, 3)).astype(np.float32),
+            "pseudo_valid_t0": np.array([True, True, False, True, True]),
             "is_ground_t0": np.array([True, False, False, True, False]),
+            "is_ground_tm1": np.array([False, True, True, False]),
             "category_t0": np.array([-1, 3, 3, 0, -1], np.int32), pair_records.TIMESTAMP_KEY: 315966265259836000,
             pair_records.PARTNER_TIMESTAMP_KEY: 315966265360032000, pair_records.SEQUENCE_KEY: "log"}
 
@@ -177,14 +179,14 @@ def _fake_pair(n0=5, n1=4):
 def test_extras_round_trip_and_are_masked_and_padded_with_their_points(tiny_config, tmp_path):
     ex = _fake_pair()
     manifest = dataclasses.replace(write_records.wod_manifest(tiny_config), source="av2",
-                                   extras=schema.PAIR_T0_EXTRA_POINT_KEYS, partner="next")
+                                   extras=schema.PAIR_EXTRA_POINT_KEYS, partner="next")
     pair_records.write_manifest(str(tmp_path), manifest)
     path = str(tmp_path / ("log" + pair_records.FILE_SUFFIX))
     pair_records.write_records_atomically(path, [pair_records.serialize_pair(
-        ex, extras=schema.PAIR_T0_EXTRA_POINT_KEYS)])
+        ex, extras=schema.PAIR_EXTRA_POINT_KEYS)])
     cfg = replace_config(_records_config(tiny_config), {"data.crop_to_grid": False})
-    got = _numpy(pairs.pair_dataset([path], cfg, extras=schema.PAIR_T0_EXTRA_POINT_KEYS, metadata=True))[0]
-    for k in schema.PAIR_T0_EXTRA_POINT_KEYS:
+    got = _numpy(pairs.pair_dataset([path], cfg, extras=schema.PAIR_EXTRA_POINT_KEYS, metadata=True))[0]
+    for k in schema.PAIR_EXTRA_POINT_KEYS:
         np.testing.assert_array_equal(got[k], ex[k], err_msg=k)
     assert got[pair_records.TIMESTAMP_KEY] == 315966265259836000
     assert got[pair_records.PARTNER_TIMESTAMP_KEY] == 315966265360032000 and got[pair_records.SEQUENCE_KEY] == b"log"
@@ -193,14 +195,16 @@ def test_extras_round_trip_and_are_masked_and_padded_with_their_points(tiny_conf
     trained = _numpy(pairs.pair_dataset([path], cfg_pseudo, training_labels=True))[0]
     np.testing.assert_array_equal(trained["flow_mps_t0"], ex["flow_mps_pseudo_t0"])
     assert "flow_mps_pseudo_t0" not in trained
+    np.testing.assert_array_equal(trained["pseudo_valid_t0"], ex["pseudo_valid_t0"])  # the loss skips the others
     scored = _numpy(pairs.pair_dataset([path], cfg_pseudo))[0]
     np.testing.assert_array_equal(scored["flow_mps_t0"], ex["flow_mps_t0"])
     # The ground-removal study drops the extras with their points; batches pad them (category -1 like class).
     cut = _numpy(pairs.pair_dataset([path], replace_config(cfg, {"data.remove_ground_below_z_m": 0.0}),
-                                    extras=("category_t0",)))[0]
+                                    extras=("category_t0", "is_ground_tm1")))[0]
     np.testing.assert_array_equal(cut["category_t0"], ex["category_t0"][ex["points_xyz_t0"][:, 2] >= 0.0])
-    batch = next(iter(pairs.batch_examples(pairs.pair_dataset([path], cfg, extras=("category_t0", "is_ground_t0")),
-                                           1, 8)))
-    assert batch["category_t0"].shape == (1, 8)
+    np.testing.assert_array_equal(cut["is_ground_tm1"], ex["is_ground_tm1"][ex["points_xyz_tm1_in_t0"][:, 2] >= 0.0])
+    batch = next(iter(pairs.batch_examples(pairs.pair_dataset([path], cfg, extras=("category_t0", "is_ground_t0",
+                                                                                   "is_ground_tm1")), 1, 8)))
+    assert batch["category_t0"].shape == (1, 8) and batch["is_ground_tm1"].shape == batch["point_mask_tm1"].shape
     np.testing.assert_array_equal(batch["category_t0"].numpy()[0], [-1, 3, 3, 0, -1, -1, -1, -1])
     np.testing.assert_array_equal(batch["is_ground_t0"].numpy()[0, 5:], False)

@@ -38,3 +38,7 @@ def test_distillation_loss_by_hand():
     # Divided by the global batch of 2; the human-label loss ignores class -1 and gives 0 here.
     np.testing.assert_allclose(batch_flow_loss(batch, outputs, 0.1, 2, pseudo_labels=True).numpy(), 1.3, rtol=1e-5)
     assert float(batch_flow_loss(batch, outputs, 0.1, 2)) == 0.0
+    # A point without a pseudo-label (pseudo_valid_t0 False: outside the fitted region) does not count: only the fast
+    # point's 5 remains, mean over 1, over the global batch of 2: 2.5.
+    batch["pseudo_valid_t0"] = tf.constant([[True, False, True]])
+    np.testing.assert_allclose(batch_flow_loss(batch, outputs, 0.1, 2, pseudo_labels=True).numpy(), 2.5, rtol=1e-5)
