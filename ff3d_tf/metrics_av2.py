@@ -5,7 +5,7 @@ Units and frames. Everything here is in metres per frame: the displacement of a 
 (AV2 sweeps are ~0.1 s apart; the leaderboard does not divide by the pair's time), with the ego motion removed (a
 static point has flow 0), in the sweep-0 ego frame (any frame works as long as truth and prediction share it: only
 norms are used). A model's m/s flow becomes metres per frame as flow_mps * (t1_ns - t0_ns) * 1e-9. The submission
-format's flow, which includes the ego motion, is converted by `ff3d_tf.data.av2_submission`.
+format's flow, which includes the ego motion, is converted by `ff3d_tf.data.av2.av2_submission`.
 
 Category index ("label index" below): the `classes` column of Argoverse's flow labels, av2-api's CATEGORY_TO_INDEX:
 0 = NONE (the point is in no cuboid: background), i + 1 = `AV2_CATEGORIES[i]`. (The community evaluator's own label
@@ -55,10 +55,10 @@ from __future__ import annotations
 import numpy as np
 
 from ff3d_tf import schema
-from ff3d_tf.data.argoverse2 import ANNOTATION_CATEGORIES, AV2_CLASS, SCENE_FLOW_DYNAMIC_THRESHOLD_M
+from ff3d_tf.data.av2.argoverse2 import ANNOTATION_CATEGORIES, AV2_CLASS, SCENE_FLOW_DYNAMIC_THRESHOLD_M
 
 # The Argoverse 2 sensor-dataset annotation categories, in av2-api's AnnotationCategories order (alphabetical); the
-# reader holds the list (`ff3d_tf.data.argoverse2.ANNOTATION_CATEGORIES`).
+# reader holds the list (`ff3d_tf.data.av2.argoverse2.ANNOTATION_CATEGORIES`).
 AV2_CATEGORIES = ANNOTATION_CATEGORIES
 LABEL_NONE = 0  # label index of a point in no cuboid
 LABEL_NAMES = ("NONE",) + AV2_CATEGORIES  # label index -> name

@@ -1,6 +1,6 @@
 """Every data schema of the project, declared once. The reader, the synthetic writer, the model and the tests import it.
 
-Decoded frame (`ff3d_tf.data.waymo.decode_frame`; one WOD `Frame`, N points of the selected lidars and returns):
+Decoded frame (`ff3d_tf.data.wod.waymo.decode_frame`; one WOD `Frame`, N points of the selected lidars and returns):
 
 | key              | dtype   | shape  | frame / unit                                                            |
 |------------------|---------|--------|-------------------------------------------------------------------------|

@@ -19,7 +19,7 @@ TINY_SCALE = 0.12  # range images ~8 x 318 (TOP) and 24 x 72 (short-range)
 @pytest.fixture(scope="session")
 def tiny_segment(tmp_path_factory):
     """Path of a 4-frame synthetic segment with small range images (all five lidars)."""
-    from ff3d_tf.data import synthetic
+    from ff3d_tf.data.synthetic import wod as synthetic
     path = str(tmp_path_factory.mktemp("seg") / "segment-tiny.tfrecord")
     synthetic.write_segment(path, synthetic.SegmentSpec(seed=5, num_frames=4, lidar_scale=TINY_SCALE))
     return path
@@ -27,7 +27,7 @@ def tiny_segment(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_records(tiny_segment):
-    from ff3d_tf.data import waymo
+    from ff3d_tf.data.wod import waymo
     return [r for _, r in waymo.iterate_records(tiny_segment)]
 
 

@@ -7,7 +7,7 @@ Random damage (bit flips, huge shapes, ...) lives in `ff3d_tf.fuzz`; these are t
 import numpy as np
 from waymo_open_dataset import dataset_pb2
 
-from ff3d_tf.data.wod_format import encode_matrix
+from ff3d_tf.data.wod.wod_format import encode_matrix
 from ff3d_tf.fuzz.wod import write_records  # noqa: F401 - the same writer as the fuzzer's mixed files
 
 NOT_A_FRAME = b"\x0a\xff\xff\xff\x0fthis is not a frame"  # declares a 4 GB field

@@ -73,7 +73,7 @@ def test_replace_config_keeps_the_fields_it_does_not_name():
 
 @pytest.mark.parametrize("laser_names,returns", [((1, 9), (1,)), ((1, 2), ())])
 def test_lidar_selection_rule_is_the_readers(laser_names, returns):
-    from ff3d_tf.data.wod_decode import DecodeOptions
+    from ff3d_tf.data.wod.wod_decode import DecodeOptions
     with pytest.raises(ConfigError) as config_error:
         load_config(None, [f"data.laser_names={list(laser_names)}", f"data.returns={list(returns)}"])
     with pytest.raises(ValueError) as reader_error:

@@ -54,6 +54,10 @@ FOUNDATION_RANKS = {  # within the foundation floor: a module imports ranks <= i
     "checkpoints": 3,
 }
 PIPELINES = ("labels", "training", "inference", "fuzz")
+# Rooms of ff3d_tf/data: one per source. A room never imports another; the synthetic generators may import the formats
+# they write. The shared modules at ff3d_tf/data/ (pairs, pair records, the job shape) may import any room.
+DATA_ROOMS = ("wod", "av2", "files", "synthetic")
+ROOMS_THAT_MAY_IMPORT_ROOMS = ("synthetic",)
 TOOL_HELPERS = ("_common",)
 
 
@@ -109,7 +113,15 @@ def layering_violations(root: str) -> list[str]:
     return sorted(set(out))
 
 
+def _data_room(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[2] if len(parts) > 3 and parts[:2] == ["ff3d_tf", "data"] and parts[2] in DATA_ROOMS else None
+
+
 def _why_not(module: str, target: str) -> str | None:
+    room, target_room = _data_room(module), _data_room(target)
+    if room and target_room and room != target_room and room not in ROOMS_THAT_MAY_IMPORT_ROOMS:
+        return f"{module} -> {target} (dataset rooms are siblings: none imports another)"
     here, there = _floor(module), _floor(target)
     if there is None or here is None or here == there:
         return None
@@ -162,6 +174,11 @@ def test_the_layering_check_finds_each_kind_of_arrow(tmp_path):
         "tools/a.py": "import _common\nfrom ff3d_tf.training import trainer\n",  # fine
         "tools/b.py": "from tools import a\n",
         "tools/c.py": "def h():\n    from a import helper\n",  # tools/ is on sys.path: `a` is tools/a.py
+        "ff3d_tf/data/__init__.py": "",
+        "ff3d_tf/data/pairs.py": "from ff3d_tf.data.wod import waymo\n",  # shared -> a room: fine
+        "ff3d_tf/data/wod/waymo.py": "from ff3d_tf.data import pairs\n",  # a room -> shared: fine
+        "ff3d_tf/data/av2/argoverse2.py": "from ff3d_tf.data.wod.waymo import x\n",
+        "ff3d_tf/data/synthetic/av2.py": "from ff3d_tf.data.av2 import argoverse2\n",  # writes that format: fine
     })
     found = layering_violations(root)
     assert found == sorted([
@@ -173,4 +190,6 @@ def test_the_layering_check_finds_each_kind_of_arrow(tmp_path):
         "siblings: none imports another)",
         "tools/b.py:1: tools.b -> tools.a (imports a tool)",
         "tools/c.py:2: tools.c -> tools.a.helper (imports a tool)",
+        "ff3d_tf/data/av2/argoverse2.py:1: ff3d_tf.data.av2.argoverse2 -> ff3d_tf.data.wod.waymo.x (dataset rooms are "
+        "siblings: none imports another)",
     ]), found

@@ -28,7 +28,7 @@ def test_categories_follow_av2_api_index_order():
     assert m.label_index(["NONE", "ANIMAL", "REGULAR_VEHICLE", "WHEELED_RIDER", ""]).tolist() == [0, 1, 19, 30, 0]
     with pytest.raises(ValueError, match="'CAR' is not an Argoverse 2 category"):
         m.label_index(["CAR"])
-    from ff3d_tf.data import argoverse2  # the reader's per-name lookup agrees
+    from ff3d_tf.data.av2 import argoverse2  # the reader's per-name lookup agrees
     assert m.label_index(m.AV2_CATEGORIES).tolist() == [argoverse2.scene_flow_category_index(c)
                                                         for c in m.AV2_CATEGORIES]
 
@@ -37,7 +37,7 @@ def test_sample_log_labels_use_the_one_based_index():
     # The `classes` column of the sample's flow labels names exactly categories annotated at sweep 0 when read with
     # NONE = 0 and categories from 1 (read 0-based, index 6 would be BUS, which the log does not have).
     import pyarrow.feather as feather
-    from ff3d_tf.data import argoverse2
+    from ff3d_tf.data.av2 import argoverse2
     labels = set(np.unique(feather.read_table(os.path.join(AV2_LOG, "flow_labels.feather")).column("classes")
                            .to_numpy()).tolist()) - {0}
     ann = feather.read_table(os.path.join(AV2_LOG, "annotations.feather"))
@@ -63,7 +63,7 @@ def test_meta_classes_are_the_evaluators():
 
 
 def test_paper_classes_come_from_the_readers_mapping():
-    from ff3d_tf.data.argoverse2 import AV2_CLASS
+    from ff3d_tf.data.av2.argoverse2 import AV2_CLASS
     assert set(AV2_CLASS) <= set(m.AV2_CATEGORIES)  # the reader's mapping names real categories only
     got = {n: int(m.PAPER_CLASS_OF_LABEL[m.label_index(n)]) for n in
            ("NONE", "REGULAR_VEHICLE", "BUS", "PEDESTRIAN", "BICYCLIST", "SIGN", "WHEELED_DEVICE", "DOG")}
@@ -256,7 +256,7 @@ def sample():
     """Sweep 0 of the sample log: points (sweep-0 ego frame), Argoverse's flow without ego motion (m over the pair,
     sweep-0 frame), label indices, ground and dynamic columns."""
     import pyarrow.feather as feather
-    from ff3d_tf.data import argoverse2
+    from ff3d_tf.data.av2 import argoverse2
     flow_m, points = argoverse2.argoverse_flow_in_paper_convention(AV2_LOG)
     t = feather.read_table(os.path.join(AV2_LOG, "flow_labels.feather"))
     return {"points": points, "flow_m": flow_m, "label": t.column("classes").to_numpy().astype(np.int64),

@@ -18,7 +18,8 @@ import _common
 import numpy as np
 
 from ff3d_tf import geometry, metrics_av2
-from ff3d_tf.data import av2_submission, pair_records
+from ff3d_tf.data import pair_records
+from ff3d_tf.data.av2 import av2_submission
 from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.training.evaluation import av2_challenge_examples, challenge_flow_m
 

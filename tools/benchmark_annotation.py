@@ -16,7 +16,8 @@ import _common  # noqa: F401
 from ff3d_tf import bench
 from ff3d_tf.labels import pipeline as annotate_segments
 from ff3d_tf.labels.box_flow import boxes_from_wod_labels
-from ff3d_tf.data import synthetic, waymo
+from ff3d_tf.data.synthetic import wod as synthetic
+from ff3d_tf.data.wod import waymo
 
 
 def main():

@@ -14,7 +14,7 @@ For each density (synthetic WOD segments: `wod` ~177K points per frame over five
 Disk: bytes per pair of each record kind, and the WOD training split's size at that rate (798 segments of ~198 pairs;
 Sun et al., CVPR 2020).
 
---av2: where Argoverse 2 labels are computed, on synthetic AV2 logs (`ff3d_tf.data.synthetic_av2`, `--av2_points`
+--av2: where Argoverse 2 labels are computed, on synthetic AV2 logs (`ff3d_tf.data.synthetic.av2`, `--av2_points`
 per sweep: 100K as the sample log's 99,229 and 99,466 over two 32-beam lidars; the module's default, 6,000, is a test
 size), in the same pinned children:
   labels_in_pipeline  labelling on the fly: `labels.av2.challenge_pair` per pair (both sweeps' feather files, poses,
@@ -82,7 +82,8 @@ def _child(args, cores: int, job: dict) -> dict:
         return _child_av2(args, cores, job)
     import tensorflow as tf
     from ff3d_tf.config import replace_config
-    from ff3d_tf.data import pairs, wod_decode
+    from ff3d_tf.data import pairs
+    from ff3d_tf.data.wod import wod_decode
     from ff3d_tf.training.trainer import training_dataset
     cfg = _common.load(args)
     options = _options(cores)
@@ -152,7 +153,8 @@ def _child_av2(args, cores: int, job: dict) -> dict:
 
 def _av2(args, cores: list[int], argv) -> dict:
     """The `--av2` part: synthetic AV2 logs, then `_child_av2` pinned to each core count."""
-    from ff3d_tf.data import argoverse2, synthetic_av2
+    from ff3d_tf.data.av2 import argoverse2
+    from ff3d_tf.data.synthetic import av2 as synthetic_av2
     cfg = _common.load(args)
     result = {"command": " ".join(["python tools/benchmark_input.py"] + list(sys.argv[1:] if argv is None else argv)),
               "config": args.config, "overrides": args.set, "batch_size": cfg.train.global_batch_size,
@@ -195,7 +197,9 @@ def _in_child(args, cores: int, job: dict) -> dict:
 def _prepare(args, density: str, tmp: str) -> dict:
     """Synthetic segments of one density and their pair records (exact, compact); sizes and points."""
     import tensorflow as tf
-    from ff3d_tf.data import pair_records, pairs, synthetic, write_records
+    from ff3d_tf.data import pair_records, pairs
+    from ff3d_tf.data.synthetic import wod as synthetic
+    from ff3d_tf.data.wod import write_records
     cfg = _common.load(args)
     seg_dir = os.path.join(tmp, density, "segments")
     os.makedirs(seg_dir)
@@ -228,7 +232,7 @@ def _official(args) -> dict:
     import tensorflow as tf
     from waymo_open_dataset import dataset_pb2
     from waymo_open_dataset.utils import frame_utils
-    from ff3d_tf.data import waymo, wod_decode
+    from ff3d_tf.data.wod import waymo, wod_decode
     from ff3d_tf.data.pairs import list_segment_files
     files = list_segment_files(args.data_dir)
     records = [r for _, r in waymo.iterate_records(files[0])][: args.frames]

@@ -83,7 +83,8 @@ def count_decodes(files, cfg) -> dict:
     from unittest import mock
 
     import tensorflow as tf
-    from ff3d_tf.data import pairs, waymo, wod_decode
+    from ff3d_tf.data import pairs
+    from ff3d_tf.data.wod import waymo, wod_decode
     decodes = tf.Variable(0, dtype=tf.int64, trainable=False)
     make_decoder = wod_decode.traced_decoder  # the one decoder every frame goes through (traced once per process)
 
@@ -131,7 +132,7 @@ def train_step_and_end_to_end(files, cfg, steps: int, model_dir: str) -> dict:
 
 
 def _synthetic_segments(args, out_dir: str) -> list[str]:
-    from ff3d_tf.data import synthetic
+    from ff3d_tf.data.synthetic import wod as synthetic
     paths = []
     for k in range(args.segments):
         path = os.path.join(out_dir, f"segment-bench-{k:03d}.tfrecord")

@@ -10,7 +10,7 @@ import time
 import _common  # noqa: F401
 
 from ff3d_tf import viz
-from ff3d_tf.data import waymo
+from ff3d_tf.data.wod import waymo
 from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.data.stats import FlowStats
 

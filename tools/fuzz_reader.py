@@ -19,7 +19,8 @@ import time
 import _common  # noqa: F401
 
 from ff3d_tf.config import load_config
-from ff3d_tf.data import synthetic, waymo
+from ff3d_tf.data.synthetic import wod as synthetic
+from ff3d_tf.data.wod import waymo
 from ff3d_tf.fuzz import av2 as av2_fuzz, config as config_fuzz, wod as wod_fuzz
 from ff3d_tf.fuzz.report import peak_rss_mib
 

@@ -12,7 +12,7 @@ import time
 
 import _common  # noqa: F401
 
-from ff3d_tf.data import synthetic
+from ff3d_tf.data.synthetic import wod as synthetic
 
 
 def main():
@@ -29,7 +29,7 @@ def main():
     p.add_argument("--split", default="train", help="av2: the split folder under --out_dir")
     args = p.parse_args()
     if args.format == "av2":
-        from ff3d_tf.data import synthetic_av2
+        from ff3d_tf.data.synthetic import av2 as synthetic_av2
         t0 = time.time()
 
         def progress(k, n, log_dir, skipped):

@@ -9,7 +9,7 @@ python tools/predict.py --config C --checkpoint M --sweeps_dir D --out_dir O [--
 
 Own point clouds (.npy, .npz, KITTI .bin, PCD, PLY; points in the vehicle frame, metres): formats, the intensity
 rule and the poses of a sweeps directory (D/poses.txt or D/<sweep>.pose.txt|.pose.npy) are described in
-ff3d_tf/data/point_files.py. Without poses the t-1 cloud is taken as already in the t0 vehicle frame. Each pair
+ff3d_tf/data/files/point_files.py. Without poses the t-1 cloud is taken as already in the t0 vehicle frame. Each pair
 writes <t0 sweep name>.npz (flow_mps, point_valid, points_xyz_t0) and <t0 sweep name>.feather, one row per point
 of the t0 file in its order (points outside the grid: point_valid false, flow 0), and a BEV PNG every --png_every
 pairs. --rerun (any input) writes both clouds and the flow arrows of every pair on a `sweep` time line
@@ -25,8 +25,10 @@ import tensorflow as tf
 
 from ff3d_tf import viz, viz3d
 from ff3d_tf.config import replace_config
-from ff3d_tf.data import pairs, point_files, waymo
-from ff3d_tf.data.point_file_errors import PointFileError
+from ff3d_tf.data import pairs
+from ff3d_tf.data.files import point_files
+from ff3d_tf.data.wod import waymo
+from ff3d_tf.data.files.point_file_errors import PointFileError
 from ff3d_tf.data.wod_errors import MissingFlowLabelsError
 from ff3d_tf.inference.predictor import load_predictor
 

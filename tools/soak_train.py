@@ -431,7 +431,7 @@ def _summary(faults: list[dict]) -> dict:
 
 def main():
     args = _args()
-    from ff3d_tf.data import synthetic
+    from ff3d_tf.data.synthetic import wod as synthetic
     os.makedirs(args.work_dir, exist_ok=True)
     for name in ("model", "model_service", "reference", "dispatcher", "logs"):
         path = os.path.join(args.work_dir, name)

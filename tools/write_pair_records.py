@@ -34,7 +34,7 @@ def main():
     written_by = " ".join(["tools/write_pair_records.py"] + sys.argv[1:])
     try:  # bad arguments fail before any work
         if args.source == "wod":
-            from ff3d_tf.data import write_records
+            from ff3d_tf.data.wod import write_records
             inputs = pairs.list_segment_files(args.input)
             run = lambda: write_records.run_wod_job(inputs, args.out_dir, cfg, args.precision,  # noqa: E731
                                                     args.compression, beam_args, written_by, not args.no_labels)

@@ -15,8 +15,9 @@ import tensorflow as tf
 
 from ff3d_tf import geometry, schema
 from ff3d_tf.config import ABLATED_CLASSES, ExperimentConfig
-from ff3d_tf.data import pair_records, waymo
-from ff3d_tf.data.wod_decode import DecodeOptions
+from ff3d_tf.data import pair_records
+from ff3d_tf.data.wod import waymo
+from ff3d_tf.data.wod.wod_decode import DecodeOptions
 from ff3d_tf.data.wod_errors import parse_tagged_error
 
 # Bucket sizes are base * {1, 1.5, 2, 3, 4, 6, 8, 12, ...}: at most 50% padding, ~2 buckets per doubling.

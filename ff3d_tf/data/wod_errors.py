@@ -1,6 +1,6 @@
 """The WOD reader's errors and its tag protocol: how a failed in-graph check names its field and record.
 
-Every check of the graph decoder (`ff3d_tf.data.wod_decode`) is a `tf.debugging.Assert` written by `check`: its
+Every check of the graph decoder (`ff3d_tf.data.wod.wod_decode`) is a `tf.debugging.Assert` written by `check`: its
 message holds a tag `<<FRAME_DECODE_ERROR|field|kind|reason|source|END_FRAME_DECODE_ERROR>>`, the source being
 `record_source(path, index)`. `parse_tagged_error` reads the tag back out of whatever TensorFlow wraps around it, and
 `TaggedError.error` turns it into the error of its kind; nothing parses TensorFlow's own wording.

@@ -1,4 +1,4 @@
-"""Fuzzing of the Argoverse 2 reader (`ff3d_tf.data.argoverse2`): a reduced copy of a log, one file damaged per
+"""Fuzzing of the Argoverse 2 reader (`ff3d_tf.data.av2.argoverse2`): a reduced copy of a log, one file damaged per
 mutant (bytes, columns, values), then everything a labelled pair reads: the sweep list, both sweeps with their ego
 poses and both sweeps' cuboids.
 
@@ -14,7 +14,7 @@ import pyarrow as pa
 import pyarrow.feather as feather
 
 from ff3d_tf import schema
-from ff3d_tf.data import argoverse2
+from ff3d_tf.data.av2 import argoverse2
 from ff3d_tf.fuzz.report import NONFINITE, Report, check_frame, judge, pick
 
 KINDS = ("bit_flip", "truncate", "not_feather", "missing_file", "drop_column", "wrong_dtype", "nan_value",

@@ -10,7 +10,8 @@ import os
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf.data import pairs, waymo
+from ff3d_tf.data import pairs
+from ff3d_tf.data.wod import waymo
 from ff3d_tf.data.wod_errors import FrameDecodeError
 from ff3d_tf.fuzz import wod_mutants
 from ff3d_tf.fuzz.report import SECONDS_PER_INPUT, Report, check_frame, judge

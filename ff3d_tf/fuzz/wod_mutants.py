@@ -7,7 +7,7 @@ import zlib
 
 import numpy as np
 
-from ff3d_tf.data import wod_format
+from ff3d_tf.data.wod import wod_format
 from ff3d_tf.fuzz.report import NONFINITE, pick
 
 KINDS = ("bit_flip", "truncate", "delete_field", "duplicate_field", "corrupt_zlib", "shape_huge", "shape_negative",

@@ -1,5 +1,5 @@
 """Argoverse 2 pairs labelled by the paper's rule: flow of each t0 point from the cuboids of two sweeps
-(`ff3d_tf.labels.box_flow.bootstrap_flow`), read through `ff3d_tf.data.argoverse2`; and the job that writes them as
+(`ff3d_tf.labels.box_flow.bootstrap_flow`), read through `ff3d_tf.data.av2.argoverse2`; and the job that writes them as
 pair records (`ff3d_tf.data.pair_records`) for training and for the Argoverse 2 challenge's evaluation.
 
 Records for the challenge pair each sweep t (the t0 cloud) with the NEXT sweep t+1 (its partner, in the t-1 slot):
@@ -21,7 +21,8 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
-from ff3d_tf.data import argoverse2, beam_job, pair_records, pairs
+from ff3d_tf.data import beam_job, pair_records, pairs
+from ff3d_tf.data.av2 import argoverse2
 from ff3d_tf.data.pairs import make_pair
 from ff3d_tf.labels.box_flow import bootstrap_flow, points_in_boxes
 

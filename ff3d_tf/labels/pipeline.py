@@ -19,9 +19,10 @@ import numpy as np
 
 from ff3d_tf import schema
 from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow
-from ff3d_tf.data import beam_job, waymo
-from ff3d_tf.data.wod_decode import DecodeOptions
-from ff3d_tf.data.wod_format import encode_matrix
+from ff3d_tf.data import beam_job
+from ff3d_tf.data.wod import waymo
+from ff3d_tf.data.wod.wod_decode import DecodeOptions
+from ff3d_tf.data.wod.wod_format import encode_matrix
 from ff3d_tf.parallel import ordered_map
 
 _LOG = logging.getLogger(__name__)

@@ -9,7 +9,7 @@ import pyarrow.feather as feather
 import pytest
 
 from ff3d_tf import schema
-from ff3d_tf.data import argoverse2
+from ff3d_tf.data.av2 import argoverse2
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")

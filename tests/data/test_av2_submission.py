@@ -1,4 +1,4 @@
-"""Argoverse 2 submissions (ff3d_tf.data.av2_submission): the flow conventions against Argoverse's own labels, the
+"""Argoverse 2 submissions (ff3d_tf.data.av2.av2_submission): the flow conventions against Argoverse's own labels, the
 write -> zip -> validate -> read round trip, and damaged archives that must fail naming the entry and field."""
 import json
 import os
@@ -11,8 +11,8 @@ import pyarrow.feather as feather
 import pytest
 
 from ff3d_tf import geometry, metrics_av2
-from ff3d_tf.data import argoverse2
-from ff3d_tf.data import av2_submission as sub
+from ff3d_tf.data.av2 import argoverse2
+from ff3d_tf.data.av2 import av2_submission as sub
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")

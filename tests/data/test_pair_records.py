@@ -9,7 +9,8 @@ import tensorflow as tf
 
 from ff3d_tf import schema
 from ff3d_tf.config import ConfigError, replace_config
-from ff3d_tf.data import pair_records, pairs, wod_errors, write_records
+from ff3d_tf.data import pair_records, pairs, wod_errors
+from ff3d_tf.data.wod import write_records
 
 
 @pytest.fixture(scope="module")

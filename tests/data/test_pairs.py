@@ -2,7 +2,8 @@
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf.data import pairs, waymo, wod_errors
+from ff3d_tf.data import pairs, wod_errors
+from ff3d_tf.data.wod import waymo
 
 
 def test_pairs_move_previous_cloud_into_t0_frame(tiny_segment, tiny_records, tiny_config):

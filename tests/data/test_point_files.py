@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from ff3d_tf import geometry, schema
-from ff3d_tf.data import pcd_ply
-from ff3d_tf.data import point_files as pf
-from ff3d_tf.data.point_file_errors import PointFileError
+from ff3d_tf.data.files import pcd_ply
+from ff3d_tf.data.files import point_files as pf
+from ff3d_tf.data.files.point_file_errors import PointFileError
 
 RNG = np.random.default_rng(3)
 XYZ = RNG.uniform(-30, 30, (7, 3)).astype(np.float32)
@@ -136,7 +136,7 @@ def test_npy_npz_bin_as_written(tmp_path):
 
 def test_frame_dict_has_the_project_shapes(tmp_path):
     from conftest import AV2_LOG
-    from ff3d_tf.data import argoverse2
+    from ff3d_tf.data.av2 import argoverse2
     np.save(tmp_path / "a.npy", XYZ)
     pose = np.eye(4)
     pose[:3, 3] = (5.0, -2.0, 0.5)

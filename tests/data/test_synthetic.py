@@ -2,8 +2,8 @@
 import numpy as np
 from waymo_open_dataset import dataset_pb2
 
-from ff3d_tf.data import synthetic
-from ff3d_tf.data import synthetic_scene as sim
+from ff3d_tf.data.synthetic import wod as synthetic
+from ff3d_tf.data.synthetic import scene as sim
 
 
 def test_laser_labels_are_the_agents_in_the_vehicle_frame():

@@ -9,8 +9,9 @@ from waymo_open_dataset.utils import frame_utils
 
 import corrupt_records
 from ff3d_tf import schema
-from ff3d_tf.data import waymo, wod_decode, wod_errors, wod_format
-from ff3d_tf.data.wod_format import encode_matrix
+from ff3d_tf.data import wod_errors
+from ff3d_tf.data.wod import waymo, wod_decode, wod_format
+from ff3d_tf.data.wod.wod_format import encode_matrix
 
 
 def _official_points(record: bytes, ri_index=0):

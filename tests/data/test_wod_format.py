@@ -1,10 +1,10 @@
-"""The WOD format's building blocks (`ff3d_tf.data.wod_format`): polar geometry shared by NumPy and the graph, and
+"""The WOD format's building blocks (`ff3d_tf.data.wod.wod_format`): polar geometry shared by NumPy and the graph, and
 the wire walk that names a malformed field."""
 import numpy as np
 import pytest
 import tensorflow as tf
 
-from ff3d_tf.data import wod_decode, wod_format
+from ff3d_tf.data.wod import wod_decode, wod_format
 
 
 def test_polar_geometry_is_shared_by_numpy_and_the_graph():

@@ -4,7 +4,7 @@ import os
 
 import numpy as np
 
-from ff3d_tf.data import argoverse2
+from ff3d_tf.data.av2 import argoverse2
 from ff3d_tf.fuzz import av2
 
 AV2_LOG = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "data",

@@ -5,7 +5,7 @@ import zlib
 import numpy as np
 import pytest
 
-from ff3d_tf.data import waymo
+from ff3d_tf.data.wod import waymo
 from ff3d_tf.data.wod_errors import FrameDecodeError
 from ff3d_tf.fuzz import report as fuzz_report
 from ff3d_tf.fuzz import wod, wod_mutants

@@ -9,7 +9,8 @@ import pytest
 from conftest import AV2_LOG
 from ff3d_tf import schema
 from ff3d_tf.config import replace_config
-from ff3d_tf.data import argoverse2, pair_records, pairs
+from ff3d_tf.data import pair_records, pairs
+from ff3d_tf.data.av2 import argoverse2
 from ff3d_tf.labels import av2
 
 

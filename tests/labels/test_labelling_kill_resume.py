@@ -16,7 +16,7 @@ NUM_SEGMENTS, FRAMES = 2, 5
 @pytest.fixture(scope="module")
 def unlabelled_dir(tmp_path_factory):
     """Two small synthetic segments (boxes in laser_labels), the labelling job's input."""
-    from ff3d_tf.data import synthetic
+    from ff3d_tf.data.synthetic import wod as synthetic
     folder = tmp_path_factory.mktemp("segments")
     for seed in range(NUM_SEGMENTS):
         synthetic.write_segment(str(folder / f"segment-{seed}.tfrecord"),

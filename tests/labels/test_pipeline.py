@@ -7,7 +7,8 @@ from waymo_open_dataset import dataset_pb2
 
 from conftest import AV2_LOG
 from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow
-from ff3d_tf.data import waymo, wod_errors
+from ff3d_tf.data import wod_errors
+from ff3d_tf.data.wod import waymo
 
 
 def _boxes(centers, headings, tracks, classes, size=(4.0, 2.0, 1.5)):
@@ -59,7 +60,7 @@ def test_matches_simulator_labels(tiny_records):
 
 
 def test_reproduces_argoverse2_labels():
-    from ff3d_tf.data import argoverse2 as av2
+    from ff3d_tf.data.av2 import argoverse2 as av2
     assert os.path.isdir(AV2_LOG), f"the in-tree Argoverse 2 sample is missing at {AV2_LOG}"
     stamps = av2.sweep_timestamps(AV2_LOG)
     f0, f1 = av2.read_sweep(AV2_LOG, stamps[0]), av2.read_sweep(AV2_LOG, stamps[1])

@@ -13,7 +13,8 @@ import pytest
 
 from conftest import ROOT
 
-from ff3d_tf.data import beam_job, pair_records, pairs, write_records
+from ff3d_tf.data import beam_job, pair_records, pairs
+from ff3d_tf.data.wod import write_records
 from ff3d_tf.labels import ground, nsfp, pseudo_records
 
 # Few steps of a small MLP on the points within 8 m (a few thousand a pair, one point bucket): the job's bookkeeping,

@@ -12,7 +12,7 @@ import pyarrow.feather as feather
 
 from conftest import AV2_LOG, ROOT, TINY_OVERRIDES
 from ff3d_tf import metrics_av2
-from ff3d_tf.data import argoverse2, av2_submission
+from ff3d_tf.data.av2 import argoverse2, av2_submission
 
 
 def _run(*args):

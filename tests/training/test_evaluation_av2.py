@@ -72,7 +72,8 @@ def test_model_and_zero_flow_are_the_challenges_arithmetic_on_the_same_points(av
 
 
 def test_other_records_are_refused(tiny_config, tmp_path):
-    from ff3d_tf.data import pair_records, write_records
+    from ff3d_tf.data import pair_records
+    from ff3d_tf.data.wod import write_records
     pair_records.write_manifest(str(tmp_path), write_records.wod_manifest(tiny_config))
     (tmp_path / "x.pairs.tfrecord").write_bytes(b"")
     with pytest.raises(ValueError, match="next sweep"):

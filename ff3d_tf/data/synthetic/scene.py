@@ -1,4 +1,4 @@
-"""The synthetic world behind `ff3d_tf.data.synthetic`: a street scene, its agents' motion and what the lidars see.
+"""The synthetic world behind `ff3d_tf.data.synthetic.wod`: a street scene, its agents' motion and what the lidars see.
 
 A curved road (so agents rotate) carries agents in lanes: vehicles, pedestrians, cyclists, parked or standing for a
 share, some appearing or disappearing mid-segment; poles, signs and buildings line it. The ego vehicle drives the right
@@ -16,7 +16,7 @@ import dataclasses
 import numpy as np
 
 from ff3d_tf import geometry, schema
-from ff3d_tf.data import wod_format
+from ff3d_tf.data.wod import wod_format
 
 DT_S = 0.1  # frame interval
 TOP_MAX_RANGE_M = 75.0

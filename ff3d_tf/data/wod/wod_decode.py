@@ -1,7 +1,7 @@
 """WOD v1 `Frame` decoding in graph: range images (+ scene-flow labels) of the five lidars -> points in the vehicle frame.
 
 The conversion follows the official `frame_utils.convert_range_image_to_point_cloud` conventions (the polar geometry
-of `ff3d_tf.data.wod_format`: column azimuths, reversed inclinations, extrinsic, TOP per-pixel pose correction) but
+of `ff3d_tf.data.wod.wod_format`: column azimuths, reversed inclinations, extrinsic, TOP per-pixel pose correction) but
 masks the returns first, so it costs a fraction of the official path. Geometry runs in float64 (per-pixel TOP
 rotations in float32, as their angles are stored) and is cast to float32 at the end. Range image channels are read by
 their names in `ff3d_tf.schema`.
@@ -9,7 +9,7 @@ their names in `ff3d_tf.schema`.
 `decode_frame_tensors` runs five named steps: parse (protos), pose (frame pose), calibrate (extrinsic, inclinations),
 to points (range image -> xyz) and flow (labels), each a function of this module. Every check is a tagged assertion
 (`ff3d_tf.data.wod_errors.check`), made before any allocation of a declared size. See `ff3d_tf.schema` for the
-decoded keys; `ff3d_tf.data.waymo` reads files with it.
+decoded keys; `ff3d_tf.data.wod.waymo` reads files with it.
 """
 from __future__ import annotations
 
@@ -20,10 +20,10 @@ from typing import NamedTuple
 import tensorflow as tf
 
 from ff3d_tf import geometry, schema
-from ff3d_tf.data import wod_format
+from ff3d_tf.data.wod import wod_format
 from ff3d_tf.data.wod_errors import (KIND_ERROR, KIND_MISSING_FLOW, KIND_NO_LIDAR, MISSING_FLOW_HELP, NO_LIDAR_HELP,
                                     check)
-from ff3d_tf.data.wod_format import descriptor_source
+from ff3d_tf.data.wod.wod_format import descriptor_source
 
 _PKG = "waymo.open_dataset."
 # Declared range image sizes beyond these are refused before anything of that size is allocated (a WOD TOP range

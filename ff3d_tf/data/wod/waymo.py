@@ -1,4 +1,4 @@
-"""Reading WOD v1 segment files: TFRecord records -> decoded frames (`ff3d_tf.data.wod_decode`), and what is wrong
+"""Reading WOD v1 segment files: TFRecord records -> decoded frames (`ff3d_tf.data.wod.wod_decode`), and what is wrong
 with a record that cannot be decoded.
 
 Every failure reaches the caller as a `FrameDecodeError` (`ff3d_tf.data.wod_errors`) naming file, record and field.
@@ -18,8 +18,8 @@ from typing import Iterator
 import tensorflow as tf
 
 from ff3d_tf import schema
-from ff3d_tf.data import wod_decode, wod_format
-from ff3d_tf.data.wod_decode import DecodeOptions
+from ff3d_tf.data.wod import wod_decode, wod_format
+from ff3d_tf.data.wod.wod_decode import DecodeOptions
 from ff3d_tf.data.wod_errors import (KIND_NO_LIDAR, NO_LIDAR_HELP, SOURCE_SEPARATOR, FrameDecodeError,
                                      MissingFlowLabelsError, TaggedError, parse_tagged_error, record_source,
                                      split_source)

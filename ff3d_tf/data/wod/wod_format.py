@@ -89,7 +89,7 @@ def rotation_from_rpy(roll, pitch, yaw) -> np.ndarray:
 @dataclasses.dataclass(frozen=True)
 class ArrayOps:
     """The few array operations the polar geometry needs, so the same formulas serve NumPy (writers, tests) and
-    TensorFlow graphs (the reader: `ff3d_tf.data.wod_decode.TF_OPS`) without this module importing TensorFlow."""
+    TensorFlow graphs (the reader: `ff3d_tf.data.wod.wod_decode.TF_OPS`) without this module importing TensorFlow."""
 
     to_f64: Callable  # scalar or array -> float64
     arange_f64: Callable  # n -> [0, 1, ..., n-1] float64

@@ -1,4 +1,4 @@
-"""Synthetic Argoverse 2 sensor logs: the street world of `ff3d_tf.data.synthetic_scene` written in AV2's layout.
+"""Synthetic Argoverse 2 sensor logs: the street world of `ff3d_tf.data.synthetic.scene` written in AV2's layout.
 
 One log directory, as the AV2 Sensor Dataset lays it out (file names, Feather columns, dtypes and LZ4 compression as
 the sample log `data/av2_sample_log` has them):
@@ -39,9 +39,9 @@ import uuid
 import numpy as np
 
 from ff3d_tf import geometry, schema
-from ff3d_tf.data import argoverse2
-from ff3d_tf.data import synthetic_scene as sim
-from ff3d_tf.data import wod_format
+from ff3d_tf.data.av2 import argoverse2
+from ff3d_tf.data.synthetic import scene as sim
+from ff3d_tf.data.wod import wod_format
 
 _LOG = logging.getLogger(__name__)
 

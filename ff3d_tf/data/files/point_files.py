@@ -52,8 +52,8 @@ import re
 import numpy as np
 
 from ff3d_tf import schema
-from ff3d_tf.data import pcd_ply
-from ff3d_tf.data.point_file_errors import PointFileError
+from ff3d_tf.data.files import pcd_ply
+from ff3d_tf.data.files.point_file_errors import PointFileError
 
 POINT_SUFFIXES = (".npy", ".npz", ".bin", ".pcd", ".ply")
 INTENSITY_FIELDS = ("intensity", "reflectance", "scalar_intensity")  # column names read as intensity (any case)

@@ -37,7 +37,7 @@ from typing import Callable
 import numpy as np
 
 from ff3d_tf import geometry
-from ff3d_tf.data import argoverse2
+from ff3d_tf.data.av2 import argoverse2
 
 FLOW_COLUMNS = tuple(argoverse2.FLOW_COLUMNS)  # flow_tx_m, flow_ty_m, flow_tz_m: the names of Argoverse's labels
 DYNAMIC_COLUMN = "is_dynamic"

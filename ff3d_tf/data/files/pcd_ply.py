@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ff3d_tf.data.point_file_errors import PointFileError
+from ff3d_tf.data.files.point_file_errors import PointFileError
 
 # PCD TYPE letter -> {SIZE in bytes: NumPy kind}
 PCD_TYPES = {"F": {4: "f4", 8: "f8"}, "I": {1: "i1", 2: "i2", 4: "i4", 8: "i8"},

@@ -1,6 +1,6 @@
 """Synthetic driving segments written as complete WOD v1 `Frame` records (the project's embedded default).
 
-The street scene of `ff3d_tf.data.synthetic_scene` is raycast with the five WOD lidars (`wod_lidars`: TOP 64 x 2650
+The street scene of `ff3d_tf.data.synthetic.scene` is raycast with the five WOD lidars (`wod_lidars`: TOP 64 x 2650
 with explicit inclinations and per-pixel poses; FRONT, SIDE_LEFT, SIDE_RIGHT, REAR 200 x 600 with uniform
 inclinations), and each frame is written as WOD writes it: header and calibrations, range images of both returns,
 camera projections, the TOP pixel pose, and `laser_labels` (tracked boxes with speed and acceleration, in the vehicle
@@ -18,9 +18,9 @@ import os
 import numpy as np
 
 from ff3d_tf import schema
-from ff3d_tf.data import synthetic_scene as sim
-from ff3d_tf.data import wod_format
-from ff3d_tf.data.synthetic_scene import LidarSpec
+from ff3d_tf.data.synthetic import scene as sim
+from ff3d_tf.data.wod import wod_format
+from ff3d_tf.data.synthetic.scene import LidarSpec
 
 SHORT_MAX_RANGE_M = 20.0
 _RANGE = schema.RANGE_CHANNEL

@@ -1,0 +1,1 @@
+"""Synthetic data in each dataset's exact format (WOD segments, Argoverse 2 logs), made by the project's own generators and read by the same code paths as the real data."""
