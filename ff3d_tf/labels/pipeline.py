@@ -26,7 +26,7 @@ from ff3d_tf.data.wod.wod_format import encode_matrix
 from ff3d_tf.parallel import ordered_map
 
 _LOG = logging.getLogger(__name__)
-ANNOTATION_THREADS = 1  # one labelling thread beside the two decoder threads (2 measured slower on 2 cores)
+ANNOTATION_THREADS = 1  # one labelling thread beside the two decoder threads (benchmarks/annotation_cpu.json)
 COUNT_KEYS = (("frames", "points", "invalid_points") + tuple(schema.CLASS_NAMES[c] for c in sorted(schema.CLASS_NAMES))
               + ("no_label_zone_points",))
 
@@ -35,7 +35,7 @@ def keep_freed_memory() -> bool:
     """Asks glibc to serve arrays up to 32 MB from its heap and to keep freed memory (mallopt); returns success.
 
     Labelling allocates and frees arrays of several MB per frame; by default glibc maps and unmaps each one, and the
-    page faults then dominate the labelling time (measured: benchmarks/annotation_cpu.json). The cost is that the
+    page faults then dominate the labelling time (benchmarks/annotation_cpu.json). The cost is that the
     process keeps its peak heap. Process-wide and idempotent; a no-op off glibc.
     """
     try:

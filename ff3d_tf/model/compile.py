@@ -2,7 +2,7 @@
 
 The model has two kinds of work. The point stages (pillarization, the point encoder and its scatter into the grid;
 the ungrid head) are gathers, scatters and small matmuls over up to millions of points: XLA fuses them into a few
-loops and keeps no per-op temporaries, about half the time and memory of TensorFlow's kernels. The dense stages (the
+loops and keeps no per-op temporaries, less time and memory than TensorFlow's kernels. The dense stages (the
 convolutional encoder and decoder on the 512 x 512 grids) are convolutions: on CPU, TensorFlow's oneDNN kernels are
 faster than XLA's (see benchmarks/latency_*.json, `tools/benchmark_latency.py --modes`); on GPU both call cuDNN and
 XLA fuses the rest, so the whole program goes to XLA there.
@@ -20,8 +20,7 @@ module, the training step in mode xla, a portable export of `model.stateless_cal
 the model then traces its stages inline, as plain ops, one XLA program in every mode. Without it the stages' own XLA
 functions nest inside the caller's program: the values are the same, and so is the optimized inference program, but a
 training call (BatchNorm statistics assigned inside the nested functions) makes TensorFlow compile the caller's
-program again at every call (measured on CPU, tiny test config, 2 x 1,000 points: 6.7 s a gradient step in mode xla,
-0.02 s with the flag).
+program again at every call (seconds a gradient step instead of milliseconds, on the tiny test config).
 
 Precision (`model.mixed_precision` = false | true | auto, `resolve_precision`): "bfloat16" runs the dense stages
 (rows C-V: the convolutions, their BatchNorm and the upsampling blocks) in bfloat16 with float32 variables (Keras
@@ -29,8 +28,8 @@ Precision (`model.mixed_precision` = false | true | auto, `resolve_precision`): 
 the loss stay float32 in every precision. auto = bfloat16 where oneDNN's bfloat16 convolutions are expected to beat
 its float32 ones (`bf16_convolutions_faster`: a CPU with amx_bf16, or an AMD CPU with avx512_bf16) and the
 convolutions run as TensorFlow kernels (compile mode hybrid or none); float32 elsewhere: GPU, TPU, mode xla, CPUs
-without those flags, and Intel CPUs with avx512_bf16 but no AMX, where oneDNN's avx512_core_bf16 convolution
-measured slower than its float32 one (benchmarks/bf16_cpu.json).
+without those flags, and Intel CPUs with avx512_bf16 but no AMX, where oneDNN's avx512_core_bf16 convolution is
+slower than its float32 one. The measurements behind each rule: benchmarks/bf16_cpu*.json (docs/benchmarks.md).
 """
 from __future__ import annotations
 
@@ -100,15 +99,12 @@ def cpu_bf16_support(cpuinfo: str | None = None) -> tuple[str, tuple[str, ...]]:
 def bf16_convolutions_faster(vendor: str, flags: tuple[str, ...]) -> tuple[bool, str]:
     """(whether oneDNN's bfloat16 convolutions are expected to beat float32 on this CPU, why).
 
-    amx_bf16: AMX tiles (TDPBF16PS), oneDNN's avx10_1_512_amx kernels: on an Intel Xeon VM with AMX the dense
-    stages' oneDNN time measured 4.8x less than float32 in inference and 4.4x in training, the paper-config forward
-    4.1x faster at 32K points and 3.0x at 1M, the training step 3.3x (benchmarks/bf16_cpu_amx.json).
-    AMD with avx512_bf16 (Zen 4 and later): the paper-config forward measured 1.9x faster at 32K points and 1.35x at
-    1M than float32 (issue 20, mode hybrid, the point encoder then in bfloat16 too; not measured again since).
-    Intel with avx512_bf16 and no AMX (an Emerald Rapids VM that hides AMX): every oneDNN bfloat16 convolution
-    kernel measured slower than its float32 one (benchmarks/bf16_cpu.json: a 3x3 64 -> 64 convolution of a
-    2 x 512 x 512 grid 1.7x slower, brg_conv_fwd:avx512_core_bf16 against brg_conv_fwd:avx512_core; the dense
-    stages' gradient 2.5x; the paper-config forward and training step slower too)."""
+    amx_bf16: AMX tiles (TDPBF16PS), oneDNN's avx10_1_512_amx kernels: the dense stages, the forward and the
+    training step faster in bfloat16 (benchmarks/bf16_cpu_amx.json).
+    AMD with avx512_bf16 (Zen 4 and later): the forward faster in bfloat16 (benchmarks/bf16_cpu_amd.json).
+    Intel with avx512_bf16 and no AMX (a VM that hides AMX): every oneDNN bfloat16 convolution kernel
+    (brg_conv_fwd:avx512_core_bf16) slower than its float32 one (brg_conv_fwd:avx512_core), and so the forward and the
+    training step (benchmarks/bf16_cpu.json)."""
     if "amx_bf16" in flags:
         return True, "CPU has amx_bf16"
     if "avx512_bf16" in flags and vendor == "AuthenticAMD":
