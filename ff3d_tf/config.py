@@ -216,7 +216,7 @@ class TrainConfig:
         if not self.learning_rate > 0:
             raise ConfigError("train.learning_rate must be > 0")
         if self.lr_schedule not in ("constant", "cosine"):
-            raise ConfigError(f"train.lr_schedule={self.lr_schedule!r}: constant or cosine")
+            raise ConfigError(f"train.lr_schedule={self.lr_schedule!r}: must be constant or cosine")
         if self.warmup_steps < 0 or not 0 <= self.lr_final_fraction <= 1:
             raise ConfigError("train.warmup_steps must be >= 0 and train.lr_final_fraction in [0, 1]")
         if self.num_steps < 0:
@@ -239,18 +239,141 @@ class TrainConfig:
                 raise ConfigError(f"train.{name}={getattr(self, name)}: must be > 0 (seconds)")
 
 
+NSFP_GROUND_RULES = ("auto", "records", "height", "none")  # nsfp.ground
+NSFP_BAD_FIT_ACTIONS = ("skip", "stop")  # nsfp.on_bad_fit
+_INT32_MAX = 2 ** 31 - 1  # counts and seeds of the fit are int32 in its compiled program
+
+
+@dataclasses.dataclass(frozen=True)
+class NsfpConfig:
+    """The NSFP pseudo-label job (`tools/pseudo_label.py`, `ff3d_tf.labels.pseudo_records`): the fit of each pair
+    (the fields of `ff3d_tf.labels.nsfp.NsfpOptions`, which documents them; `nsfp.options_from_config`), then what
+    the job does around the fit (`pseudo_records.JobOptions`; `pseudo_records.job_from_config`). One rule table
+    (`nsfp_option_problem`) checks this section and both option classes.
+
+    The defaults are the job's fit (`nsfp.MEASURED_FIT_OPTIONS`), chosen on the Argoverse 2 sample pair (its scores:
+    benchmarks/nsfp_cpu.json): NSFP's two-sided Chamfer (reverse correspondences found every 5 steps), a learning rate
+    of 0.002 (NSFP: 0.008), no weight decay (NSFP: 1e-4), early stopping at 1e-5 m^2 (NSFP: 1e-4; a dense pair's mean
+    squared distances are small), fitted to every 4th point; the fitted region bounded whatever the sweep's range:
+    the Argoverse 2 challenge's box in x and y (`metrics_av2.MAX_DISTANCE_M`) and ZeroFlow's z range. NSFP's
+    published fit: learning_rate=0.008, weight_decay=1e-4, reverse_every=1, min_delta=1e-4, fit_every=1,
+    crop_xy_half_extent_m=null, crop_z_range_m=null."""
+
+    # --- the fit (NsfpOptions)
+    hidden_layers: int = 8  # coordinate MLP: hidden layers of hidden_units, ReLU
+    hidden_units: int = 128
+    learning_rate: float = 2e-3  # Adam
+    warmup_iterations: int = 0  # learning rate ramped linearly over the first this many steps
+    weight_decay: float = 0.0  # L2 added to the gradients of both MLPs
+    max_iterations: int = 5000
+    patience: int = 100  # early stopping: steps without the loss improving by more than min_delta
+    min_delta: float = 1e-5  # m^2 (m with squared_chamfer=false)
+    backward_cycle: bool = True  # NSFP's backward-flow (cycle) term
+    reverse_every: int = 5  # two-sided Chamfer, correspondences found every this many steps; 0: one-sided
+    fit_every: int = 4  # fit on every k-th kept point, then evaluate the fitted MLP at every kept point
+    exact_chamfer: bool = False  # exact nearest neighbours (slow; for checking) instead of the distance transform
+    squared_chamfer: bool = True  # mean squared distances (NSFP's Chamfer), else mean distances
+    truncate_m: float | None = None  # points this far or farther from the target count 0; null: no truncation
+    grid_cell_m: float = 0.1  # finest cell of the distance transform (coarsened to fit max_grid_cells)
+    grid_margin_m: float = 0.5  # grid bounds: the kept clouds' bounding box (or crop box) grown by this much
+    band_cells: int = 4  # finest level exact wherever the nearest point is within this many cells
+    coarse_band_cells: int = 3  # the same on the coarser levels
+    max_grid_cells: int = 1 << 26  # largest grid (4 bytes a node, two grids a pair)
+    remove_ground_below_z_m: float | None = None  # also drop points below this z (vehicle frame, both clouds)
+    crop_xy_half_extent_m: float | None = 35.0  # fit points with |x|, |y| <= this (metrics_av2.MAX_DISTANCE_M); null:
+    # no crop (the grid coarsens to fit the clouds)
+    crop_z_range_m: tuple[float, float] | None = (-3.0, 3.0)  # fit points with z in [lo, hi]; null: no crop
+    point_bucket_base: int = 1024  # point counts padded to buckets: one compiled fit per bucket
+    segment_iterations: int = 100  # Adam steps per compiled call (progress is reported between calls)
+    seed: int = 0  # the MLPs' initialisation; a retry of a bad fit uses the next seed
+    # --- the job around the fit (JobOptions)
+    ground: str = "auto"  # ground removed from both clouds by one rule: records (the records' masks of both
+    # clouds, e.g. Argoverse 2's map), height (ff3d_tf.labels.ground), auto (records where they carry both masks,
+    # else height), none
+    max_speed_mps: float = 50.0  # a fitted point faster than this is implausible (no pseudo-label)
+    max_implausible_fraction: float = 0.01  # a fit with a larger share of implausible fitted points is bad
+    retries: int = 1  # fits of a bad pair with the next seeds before it is given up
+    on_bad_fit: str = "skip"  # skip: the pair is written without pseudo-labels and named; stop: the job stops
+
+    def validate(self) -> None:
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            problem = nsfp_option_problem(field.name, value)
+            if problem:
+                raise ConfigError(f"nsfp.{field.name}={value!r}: {problem}")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _integer(lo: int):
+    return lambda v: "" if isinstance(v, int) and not isinstance(v, bool) and lo <= v <= _INT32_MAX else \
+        f"must be an integer in [{lo}, {_INT32_MAX}]"
+
+
+def _number(lo: float, strict: bool):
+    return lambda v: "" if _is_number(v) and (v > lo if strict else v >= lo) else \
+        f"must be a finite number {'>' if strict else '>='} {lo:g}"
+
+
+def _or_null(rule):
+    return lambda v: "" if v is None else (rule(v) and f"{rule(v)} or null")
+
+
+def _one_of(choices: tuple[str, ...]):
+    return lambda v: "" if v in choices else f"must be one of {', '.join(choices)}"
+
+
+def _flag(v) -> str:
+    return "" if isinstance(v, bool) else "must be true or false"
+
+
+def _range(v) -> str:
+    ok = isinstance(v, (tuple, list)) and len(v) == 2 and all(_is_number(z) for z in v) and v[0] < v[1]
+    return "" if ok else "must be [lo, hi] with lo < hi, or null"
+
+
+_NSFP_RULES = {  # NsfpConfig field -> its check (message of what is allowed, "" if the value is)
+    **{name: _integer(1) for name in ("hidden_layers", "hidden_units", "max_iterations", "patience", "fit_every",
+                                      "band_cells", "coarse_band_cells", "max_grid_cells", "point_bucket_base",
+                                      "segment_iterations")},
+    **{name: _integer(0) for name in ("warmup_iterations", "reverse_every", "seed", "retries")},
+    **{name: _number(0.0, strict=True) for name in ("learning_rate", "grid_cell_m", "max_speed_mps",
+                                                     "max_implausible_fraction")},
+    **{name: _number(0.0, strict=False) for name in ("weight_decay", "min_delta", "grid_margin_m")},
+    **{name: _flag for name in ("backward_cycle", "exact_chamfer", "squared_chamfer")},
+    "truncate_m": _or_null(_number(0.0, strict=True)),
+    "crop_xy_half_extent_m": _or_null(_number(0.0, strict=True)),
+    "remove_ground_below_z_m": _or_null(lambda v: "" if _is_number(v) else "must be a finite number"),
+    "crop_z_range_m": lambda v: "" if v is None else _range(v),
+    "ground": _one_of(NSFP_GROUND_RULES),
+    "on_bad_fit": _one_of(NSFP_BAD_FIT_ACTIONS),
+}
+
+
+def nsfp_option_problem(name: str, value) -> str:
+    """What is allowed for the `nsfp` option `name` (a field of NsfpConfig, NsfpOptions or JobOptions) when `value`
+    is not, else "": the one statement of these rules, for the config section and the option classes alike."""
+    if name not in _NSFP_RULES:
+        raise KeyError(f"{name}: not an nsfp option; known: {sorted(_NSFP_RULES)}")
+    return _NSFP_RULES[name](value)
+
+
 @dataclasses.dataclass(frozen=True)
 class ExperimentConfig:
     grid: GridConfig = GridConfig()
     data: DataConfig = DataConfig()
     model: ModelConfig = ModelConfig()
     train: TrainConfig = TrainConfig()
+    nsfp: NsfpConfig = NsfpConfig()
 
     def validate(self) -> "ExperimentConfig":
         self.grid.validate()
         self.data.validate()
         self.model.validate()
         self.train.validate()
+        self.nsfp.validate()
         return self
 
     def to_dict(self) -> dict[str, Any]:

@@ -1,12 +1,16 @@
 import pytest
 
-from ff3d_tf.config import ConfigError, load_config, replace_config
+from ff3d_tf.config import ConfigError, NsfpConfig, load_config, replace_config
 
 
 def test_paper_config_and_overrides(tmp_path):
-    cfg = load_config("configs/fastflow3d_waymo.yaml", ["train.learning_rate=1e-4", "grid.num_pillars_x=256"])
+    cfg = load_config("configs/fastflow3d_waymo.yaml", ["train.learning_rate=1e-4", "grid.num_pillars_x=256",
+                                                         "nsfp.fit_every=8", "nsfp.crop_z_range_m=[-2, 4]",
+                                                         "nsfp.crop_xy_half_extent_m=null", "nsfp.on_bad_fit=stop"])
     assert cfg.train.learning_rate == 1e-4 and cfg.grid.num_pillars_x == 256
     assert cfg.train.global_batch_size == 64 and cfg.grid.x_range_m == (-85.0, 85.0)
+    assert cfg.nsfp.fit_every == 8 and cfg.nsfp.crop_z_range_m == (-2.0, 4.0) and cfg.nsfp.on_bad_fit == "stop"
+    assert cfg.nsfp.crop_xy_half_extent_m is None and cfg.nsfp.learning_rate == NsfpConfig().learning_rate
     cfg.save(str(tmp_path / "c.yaml"))
     again = load_config(str(tmp_path / "c.yaml"))
     assert again == cfg
@@ -33,7 +37,7 @@ def test_yaml_is_data_only(tmp_path):
 
 @pytest.mark.parametrize("override,message", [
     ("train.learnin_rate=1", r"unknown config key train.learnin_rate; known: \[.*'learning_rate'"),
-    ("gridd.num_pillars_x=8", r"unknown config key gridd; known: \['data', 'grid', 'model', 'train'\]"),
+    ("gridd.num_pillars_x=8", r"unknown config key gridd; known: \['data', 'grid', 'model', 'nsfp', 'train'\]"),
     ("grid.x_range_m=[1, 2, 3]", r"grid.x_range_m: expected a list of 2 values, got 3"),
     ("grid.z_range_m=[-3]", r"grid.z_range_m: expected a list of 2 values, got 1"),
     ("train.background_weight=null", r"train.background_weight: expected a finite number, got None"),
@@ -50,6 +54,17 @@ def test_yaml_is_data_only(tmp_path):
     ("model.encoder_widths=[0, 8, 8]", r"model.encoder_widths \(value 0\)=0: must be in \[1, 65536\]"),
     ("model.decoder_dims=[[8, 8], [8, 8]]", r"model.decoder_dims: must have 3 entries"),
     ("data=[1, 2]", r"data: expected a mapping of \[.*'laser_names'"),
+    # the nsfp section: the pseudo-label job's options (tools/pseudo_label.py)
+    ("nsfp.learning_rate=0", r"nsfp.learning_rate=0.0: must be a finite number > 0"),
+    ("nsfp.reverse_every=-1", r"nsfp.reverse_every=-1: must be an integer in \[0, 2147483647\]"),
+    ("nsfp.fit_every=0", r"nsfp.fit_every=0: must be an integer in \[1, 2147483647\]"),
+    ("nsfp.max_iterations=1.5", r"nsfp.max_iterations: expected an integer, got 1.5"),
+    ("nsfp.crop_z_range_m=[3, -3]", r"nsfp.crop_z_range_m=\(3.0, -3.0\): must be \[lo, hi\] with lo < hi, or null"),
+    ("nsfp.truncate_m=0", r"nsfp.truncate_m=0.0: must be a finite number > 0 or null"),
+    ("nsfp.ground=map", r"nsfp.ground='map': must be one of auto, records, height, none"),
+    ("nsfp.on_bad_fit=ignore", r"nsfp.on_bad_fit='ignore': must be one of skip, stop"),
+    ("nsfp.retries=-1", r"nsfp.retries=-1: must be an integer in \[0, "),
+    ("nsfp.fit_evry=2", r"unknown config key nsfp.fit_evry; known: \[.*'fit_every'"),
 ])
 def test_bad_values_name_the_key_and_what_is_allowed(override, message):
     with pytest.raises(ConfigError, match=message):

@@ -100,7 +100,8 @@ def main():
     p.add_argument("--exact_steps", type=int, default=3, help="Adam steps timed with exact nearest neighbours")
     p.add_argument("--av2_log", default=os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
                                                      "data", "av2_sample_log"))
-    p.add_argument("--av2_args", default="", help="extra flags of tools/pseudo_label.py, e.g. '--fit_every 8'")
+    p.add_argument("--av2_args", default="", help="extra flags of tools/pseudo_label.py, e.g. '--set nsfp.fit_every=8' "
+                   "(its options are the config's nsfp section)")
     p.add_argument("--skip_av2", action="store_true")
     p.add_argument("--fresh", action="store_true", help="redo sections already in --out")
     args = p.parse_args()

@@ -49,8 +49,8 @@ from typing import Callable, NamedTuple
 import numpy as np
 import tensorflow as tf
 
+from ff3d_tf.config import ExperimentConfig, nsfp_option_problem
 from ff3d_tf.data.pairs import bucket_size
-from ff3d_tf.metrics_av2 import MAX_DISTANCE_M
 from ff3d_tf.labels.distance_grid import (DistanceGrid, build_distance_grid, chamfer_loss, fitted_grid_geometry,
                                           nearest_index, reverse_chamfer_loss)
 from ff3d_tf.model.step import adam_apply
@@ -61,9 +61,10 @@ NSFP_TRUNCATE_M = math.sqrt(2.0)  # NSFP's truncated Chamfer: squared nearest di
 
 @dataclasses.dataclass(frozen=True)
 class NsfpOptions:
-    """Options of `nsfp_flow`, by default NSFP's (but one-sided and untruncated; `MEASURED_FIT_OPTIONS` holds the
-    settings measured best on the Argoverse 2 sample pair). The objective and `min_delta` are in m^2 (mean
-    squared Chamfer distances; m with `squared_chamfer=False`)."""
+    """Options of `nsfp_flow`, by default NSFP's (but one-sided and untruncated; `MEASURED_FIT_OPTIONS`, the defaults
+    of the config's `nsfp` section, is the pseudo-label job's fit; `options_from_config` builds them from a config).
+    The objective and `min_delta` are in m^2 (mean squared Chamfer distances; m with `squared_chamfer=False`). Checked
+    by the rules of the config's section (`ff3d_tf.config.nsfp_option_problem`)."""
     hidden_layers: int = 8  # NSFP: 8 hidden layers of 128, ReLU
     hidden_units: int = 128
     learning_rate: float = 8e-3  # Adam (NSFP and ZeroFlow: 0.008)
@@ -93,55 +94,25 @@ class NsfpOptions:
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("hidden_layers", "hidden_units", "max_iterations", "patience", "max_grid_cells",
-                     "point_bucket_base", "band_cells", "coarse_band_cells", "segment_iterations"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"NsfpOptions.{name}: must be an integer >= 1, got {value!r}")
-        if isinstance(self.warmup_iterations, bool) or not isinstance(self.warmup_iterations, int) \
-                or self.warmup_iterations < 0:
-            raise ValueError(f"NsfpOptions.warmup_iterations: must be an integer >= 0, got {self.warmup_iterations!r}")
-        for name in ("reverse_every", "fit_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (name == "fit_every"):
-                raise ValueError(f"NsfpOptions.{name}: must be an integer >= {int(name == 'fit_every')}, got {value!r}")
-        for name in ("learning_rate", "grid_cell_m"):
-            if not _is_real(getattr(self, name)) or not getattr(self, name) > 0:
-                raise ValueError(f"NsfpOptions.{name}: must be a finite number > 0, got {getattr(self, name)!r}")
-        for name in ("min_delta", "grid_margin_m", "weight_decay"):
-            if not _is_real(getattr(self, name)) or getattr(self, name) < 0:
-                raise ValueError(f"NsfpOptions.{name}: must be a finite number >= 0, got {getattr(self, name)!r}")
-        if self.truncate_m is not None and not (_is_real(self.truncate_m) and self.truncate_m > 0):
-            raise ValueError(f"NsfpOptions.truncate_m: must be a finite number > 0 or None, got {self.truncate_m!r}")
-        if self.remove_ground_below_z_m is not None and not _is_real(self.remove_ground_below_z_m):
-            raise ValueError(f"NsfpOptions.remove_ground_below_z_m: must be a finite number or None, "
-                             f"got {self.remove_ground_below_z_m!r}")
-        crop = self.crop_xy_half_extent_m
-        if crop is not None and not (_is_real(crop) and crop > 0):
-            raise ValueError(f"NsfpOptions.crop_xy_half_extent_m: must be a finite number > 0 or None, got {crop!r}")
-        z_range = self.crop_z_range_m
-        if z_range is not None and not (isinstance(z_range, (tuple, list)) and len(z_range) == 2
-                                        and all(_is_real(z) for z in z_range) and z_range[0] < z_range[1]):
-            raise ValueError(f"NsfpOptions.crop_z_range_m: must be (lo, hi) with lo < hi or None, got {z_range!r}")
-        for name in ("backward_cycle", "exact_chamfer", "squared_chamfer"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"NsfpOptions.{name}: must be a bool, got {getattr(self, name)!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2 ** 31:
-            raise ValueError(f"NsfpOptions.seed: must be an integer in [0, 2**31), got {self.seed!r}")
+        for field in dataclasses.fields(self):  # the rules of the config's nsfp section, one statement of them
+            problem = nsfp_option_problem(field.name, getattr(self, field.name))
+            if problem:
+                raise ValueError(f"NsfpOptions.{field.name}: {problem}, got {getattr(self, field.name)!r}")
 
 
 def _is_real(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-# The pseudo-label job's fit (`ff3d_tf.labels.pseudo_records`), chosen on the Argoverse 2 sample pair (its scores:
-# benchmarks/nsfp_cpu.json, docs): NSFP's two-sided Chamfer (reverse correspondences found every 5 steps), a learning
-# rate of 0.002 (NSFP: 0.008), no weight decay (NSFP: 1e-4), early stopping at 1e-5 m^2 (NSFP: 1e-4; a dense pair's
-# mean squared distances are small), fitted to every 4th point; the fitted region bounded whatever the sweep's
-# range: the Argoverse 2 challenge's box in x and y (`metrics_av2.MAX_DISTANCE_M`) and ZeroFlow's z range. The
-# pseudo-label job's defaults; `NsfpOptions()` itself keeps NSFP's published settings.
-MEASURED_FIT_OPTIONS = NsfpOptions(learning_rate=2e-3, weight_decay=0.0, reverse_every=5, min_delta=1e-5, fit_every=4,
-                                   crop_xy_half_extent_m=MAX_DISTANCE_M, crop_z_range_m=(-3.0, 3.0))
+def options_from_config(cfg: ExperimentConfig) -> NsfpOptions:
+    """The fit of the pseudo-label job that `cfg` (an ExperimentConfig) configures: every NsfpOptions field from the
+    field of the same name in `cfg.nsfp`."""
+    return NsfpOptions(**{f.name: getattr(cfg.nsfp, f.name) for f in dataclasses.fields(NsfpOptions)})
+
+
+# The pseudo-label job's fit (`ff3d_tf.labels.pseudo_records`): the defaults of the config's `nsfp` section
+# (`ff3d_tf.config.NsfpConfig`, which says how they were chosen). `NsfpOptions()` itself keeps NSFP's published fit.
+MEASURED_FIT_OPTIONS = options_from_config(ExperimentConfig())
 
 
 @dataclasses.dataclass(frozen=True)

@@ -4,14 +4,16 @@ held (human labels, ground masks, categories), so that `data.labels=pseudo` trai
 scores the human labels.
 
 One pair (`fit_pair`, also what `ff3d_tf.labels.nsfp_av2_check` scores): the fit sees the points of both clouds in the
-fitted region (`NsfpOptions`' crop: by default the Argoverse 2 challenge's box in x and y and ZeroFlow's z range) that
-are not ground, by the same rule for both clouds (`JobOptions.ground`: the records' own masks where they carry one
-for each cloud, Argoverse 2's map raster; else the local height rule of `ff3d_tf.labels.ground`). A t0 point the fit
-did not see gets no pseudo-label (`pseudo_valid_t0` False, flow 0), never a zero label. A fit whose loss or flow is
-not finite, or whose share of fitted points faster than `JobOptions.max_speed_mps` is above
-`max_implausible_fraction`, is fitted again with the next seed (`retries` times); if it stays so, the pair is named
-in the job's report (`bad_fits`) and written without pseudo-labels, or the job stops (`on_bad_fit="stop"`). Points
-faster than `max_speed_mps` in a fit that passes get no pseudo-label either.
+fitted region (the crop: by default the Argoverse 2 challenge's box in x and y and ZeroFlow's z range) that are not
+ground, by the same rule for both clouds (`ground`: the records' own masks where they carry one for each cloud,
+Argoverse 2's map raster; else the local height rule of `ff3d_tf.labels.ground`). A t0 point the fit did not see gets
+no pseudo-label (`pseudo_valid_t0` False, flow 0), never a zero label. A fit whose loss or flow is not finite, or
+whose share of fitted points faster than `max_speed_mps` is above `max_implausible_fraction`, is fitted again with
+the next seed (`retries` times); if it stays so, the pair is named in the job's report (`bad_fits`) and written
+without pseudo-labels, or the job stops (`on_bad_fit="stop"`). Points faster than `max_speed_mps` in a fit that passes
+get no pseudo-label either. These options are `JobOptions` (and its `NsfpOptions`), built from the config's `nsfp`
+section (`job_from_config`; `ff3d_tf.config.NsfpConfig` documents each key); the job writes the resolved config
+beside its output (`<out_dir>/config.yaml`).
 
 Input: records of any source (`tools/write_pair_records.py`, WOD or Argoverse 2, labelled or raw with `--no_labels`).
 One Beam element per records file (`ff3d_tf.data.beam_job`). NSFP takes seconds to minutes per pair, so each pair's
@@ -26,25 +28,29 @@ from __future__ import annotations
 import dataclasses
 import functools
 import io
+import json
 import logging
 import math
 import os
 import time
+from typing import Callable
 
 import numpy as np
 import tensorflow as tf
+import yaml
 
 from ff3d_tf import schema
+from ff3d_tf.config import ConfigError, ExperimentConfig, NsfpConfig, nsfp_option_problem
 from ff3d_tf.data import beam_job, pair_records, wod_errors
+from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.labels import nsfp_av2_check
 from ff3d_tf.labels.ground import height_ground_mask
-from ff3d_tf.labels.nsfp import MEASURED_FIT_OPTIONS, NsfpOptions, NsfpResult, nsfp_flow
+from ff3d_tf.labels.nsfp import MEASURED_FIT_OPTIONS, NsfpOptions, NsfpResult, nsfp_flow, options_from_config
 
 _LOG = logging.getLogger(__name__)
 PSEUDO_KEY, PSEUDO_VALID_KEY = schema.PSEUDO_FLOW_KEY, schema.PSEUDO_VALID_KEY
 PSEUDO_EXTRAS = (PSEUDO_KEY, PSEUDO_VALID_KEY)
-GROUND_RULES = ("auto", "records", "height", "none")  # JobOptions.ground
-BAD_FIT_ACTIONS = ("skip", "stop")  # JobOptions.on_bad_fit
+_JOB_DEFAULTS = NsfpConfig()  # JobOptions' defaults: the config's nsfp section's
 
 
 class BadFitError(RuntimeError):
@@ -53,29 +59,29 @@ class BadFitError(RuntimeError):
 
 @dataclasses.dataclass(frozen=True)
 class JobOptions:
-    """The pseudo-label job's options: the fit, and what the job does around it (module docstring)."""
+    """The pseudo-label job's options: the fit, and what the job does around it (module docstring). Defaults and
+    rules: the config's `nsfp` section (`ff3d_tf.config.NsfpConfig`, which documents each; `job_from_config`)."""
     nsfp: NsfpOptions = MEASURED_FIT_OPTIONS
-    ground: str = "auto"  # records: the records' masks of both clouds; height: ff3d_tf.labels.ground; auto: records
-    # where they carry both masks, else height; none: no ground removal (besides nsfp.remove_ground_below_z_m)
-    max_speed_mps: float = 50.0  # a fitted point faster than this is implausible (no pseudo-label)
-    max_implausible_fraction: float = 0.01  # a fit with more implausible fitted points than this share is bad
-    retries: int = 1  # fits of a bad pair with the next seeds before it is given up
-    on_bad_fit: str = "skip"  # skip: the pair is written without pseudo-labels and named; stop: the job stops
+    ground: str = _JOB_DEFAULTS.ground  # one of config.NSFP_GROUND_RULES
+    max_speed_mps: float = _JOB_DEFAULTS.max_speed_mps
+    max_implausible_fraction: float = _JOB_DEFAULTS.max_implausible_fraction
+    retries: int = _JOB_DEFAULTS.retries
+    on_bad_fit: str = _JOB_DEFAULTS.on_bad_fit  # one of config.NSFP_BAD_FIT_ACTIONS
 
     def __post_init__(self):
         if not isinstance(self.nsfp, NsfpOptions):
             raise ValueError(f"JobOptions.nsfp: an NsfpOptions, got {type(self.nsfp).__name__}")
-        if self.ground not in GROUND_RULES:
-            raise ValueError(f"JobOptions.ground: one of {', '.join(GROUND_RULES)}, got {self.ground!r}")
-        if self.on_bad_fit not in BAD_FIT_ACTIONS:
-            raise ValueError(f"JobOptions.on_bad_fit: one of {', '.join(BAD_FIT_ACTIONS)}, got {self.on_bad_fit!r}")
-        for name, low in (("max_speed_mps", 0.0), ("max_implausible_fraction", 0.0)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                    or value <= low:
-                raise ValueError(f"JobOptions.{name}: must be a finite number > {low}, got {value!r}")
-        if isinstance(self.retries, bool) or not isinstance(self.retries, int) or self.retries < 0:
-            raise ValueError(f"JobOptions.retries: must be an integer >= 0, got {self.retries!r}")
+        for field in (f for f in dataclasses.fields(self) if f.name != "nsfp"):
+            problem = nsfp_option_problem(field.name, getattr(self, field.name))
+            if problem:
+                raise ValueError(f"JobOptions.{field.name}: {problem}, got {getattr(self, field.name)!r}")
+
+
+def job_from_config(cfg: ExperimentConfig) -> JobOptions:
+    """The pseudo-label job that `cfg` (an ExperimentConfig) configures: its fit (`nsfp.options_from_config`) and
+    every other JobOptions field from the field of the same name in `cfg.nsfp`."""
+    return JobOptions(options_from_config(cfg), **{f.name: getattr(cfg.nsfp, f.name)
+                                                   for f in dataclasses.fields(JobOptions) if f.name != "nsfp"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,15 +193,16 @@ def _implausible(result: NsfpResult, job: JobOptions) -> str:
     return ""
 
 
-def fit_pair(ex: dict, job: JobOptions = JobOptions()) -> PairFit:
+def fit_pair(ex: dict, job: JobOptions = JobOptions(), progress: Callable[[int, float], None] | None = None) -> PairFit:
     """The pseudo-labels of one record's pair (module docstring): ground by `job.ground` on both clouds, the fit,
-    its guard and retries. `ex`: the record's fields as NumPy (`pair_records`)."""
+    its guard and retries. `ex`: the record's fields as NumPy (`pair_records`); `progress(steps, best_loss)` is
+    called between the fit's compiled segments."""
     ground_t0, ground_tm1, rule = ground_masks(ex, job.ground)
     keep_t0, keep_tm1 = (None if g is None else ~g for g in (ground_t0, ground_tm1))
     for attempt in range(job.retries + 1):
         options = dataclasses.replace(job.nsfp, seed=(job.nsfp.seed + attempt) % 2 ** 31)
         result = nsfp_flow(ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"], pair_records.pair_gap_s(ex), options,
-                           keep_t0=keep_t0, keep_tm1=keep_tm1)
+                           keep_t0=keep_t0, keep_tm1=keep_tm1, progress=progress)
         problem = _implausible(result, job)
         if not problem:
             break
@@ -238,7 +245,12 @@ def pseudo_label_file(in_path: str, out_dir: str, job: JobOptions, manifest: pai
             done = _load_part(part, len(ex["points_xyz_t0"]))
             where = f"{in_path}: record {index} (t0 {int(ex[pair_records.TIMESTAMP_KEY])} ns)"
             if done is None:
-                fit = fit_pair(ex, job)
+                started = time.time()
+
+                def fit_progress(steps, loss, index=index, started=started):
+                    _LOG.info("%s pair %d: %d of at most %d steps, best loss %.5f, %.0f s", os.path.basename(in_path),
+                              index, steps, job.nsfp.max_iterations, loss, time.time() - started)
+                fit = fit_pair(ex, job, fit_progress)
                 if fit.problem and job.on_bad_fit == "stop":
                     raise BadFitError(f"{where}: {fit.problem} after {fit.attempts} fits (on_bad_fit=stop; "
                                       "on_bad_fit=skip writes the pair without pseudo-labels)")
@@ -273,28 +285,65 @@ def pseudo_label_file(in_path: str, out_dir: str, job: JobOptions, manifest: pai
 
 
 SCORES_NAME = "pseudo_label_scores.json"
+CONFIG_NAME = "config.yaml"  # the resolved config of the job, beside its pseudo-labels
 
 
-def run_pseudo_label_job(files: list[str], out_dir: str, job: JobOptions, beam_args: list[str] | None = None,
-                         written_by: str = "", skip_bad_records: bool = False, cfg=None) -> dict:
-    """Pseudo-labels of every records file in `files` into `out_dir` (a Beam job, one element per file; progress
-    with rate and ETA per pair and per file; bad records named, or skipped and counted with `skip_bad_records`; bad
-    fits named in `bad_fits`, or the job stopped with `job.on_bad_fit="stop"`). Where the records carry human labels
-    the scores can be computed from (`nsfp_av2_check.scorable`), the pseudo-labels' scores against them and zero
-    flow's are added (`scores`) and written to `<out_dir>/pseudo_label_scores.json`."""
+def records_files(input_dir: str) -> list[str]:
+    """The pair records files of `input_dir` (sorted); FileNotFoundError naming the directory when there are none."""
+    files = [f for f in list_segment_files(input_dir) if f.endswith(pair_records.FILE_SUFFIX)]
+    if not files:
+        raise FileNotFoundError(f"{input_dir}: no pair records (*{pair_records.FILE_SUFFIX}); write them with "
+                                "tools/write_pair_records.py")
+    return files
+
+
+def save_job_config(out_dir: str, cfg: ExperimentConfig) -> None:
+    """Writes the resolved config to `<out_dir>/config.yaml`. A directory whose saved config has another `nsfp`
+    section holds (part of) the pseudo-labels of another job, which a rerun would resume and mix with this one's:
+    ConfigError naming the keys that differ, before any work."""
+    path = os.path.join(out_dir, CONFIG_NAME)
+    if tf.io.gfile.exists(path):
+        with tf.io.gfile.GFile(path) as f:
+            text = f.read()
+        try:
+            tree = yaml.safe_load(text)
+        except yaml.YAMLError:
+            tree = None
+        saved = tree.get("nsfp") if isinstance(tree, dict) else None
+        if not isinstance(saved, dict):
+            raise ConfigError(f"{path}: not a saved config with an nsfp section; use another --out_dir")
+        now, default = (json.loads(json.dumps(dataclasses.asdict(c))) for c in (cfg.nsfp, NsfpConfig()))  # as saved
+        saved = {k: saved.get(k, default[k]) for k in now}  # a key the saved config lacks had its default
+        differ = [k for k in now if saved[k] != now[k]]
+        if differ:
+            raise ConfigError(f"{out_dir} holds the pseudo-labels of another job: " + ", ".join(
+                f"nsfp.{k} {saved[k]!r} there, {now[k]!r} here" for k in differ) + "; use another --out_dir")
+    cfg.save(path)
+
+
+def run_pseudo_label_job(files: list[str], out_dir: str, cfg: ExperimentConfig, beam_args: list[str] | None = None,
+                         written_by: str = "", skip_bad_records: bool = False) -> dict:
+    """Pseudo-labels of every records file in `files` into `out_dir` by the job that `cfg.nsfp` configures
+    (`job_from_config`; a Beam job, one element per file; progress with rate and ETA per pair and per file; bad
+    records named, or skipped and counted with `skip_bad_records`; bad fits named in `bad_fits`, or the job stopped
+    with `nsfp.on_bad_fit=stop`). The resolved config is written to `<out_dir>/config.yaml` (`save_job_config`), the
+    records' manifest names `written_by`. Where the records carry human labels the scores can be computed from
+    (`nsfp_av2_check.scorable`), the pseudo-labels' scores against them and zero flow's are added (`scores`) and
+    written to `<out_dir>/pseudo_label_scores.json`."""
+    job = job_from_config(cfg)
     manifest = pair_records.manifest_of_files(list(files))
     if job.ground == "records" and not {"is_ground_t0", "is_ground_tm1"} <= set(manifest.extras):
         ground_masks({}, "records")  # raises, naming what is missing: before any work
     out_manifest = output_manifest(manifest, written_by)
     pair_records.write_manifest(out_dir, out_manifest)  # before any work: a directory of other records fails here
+    save_job_config(out_dir, cfg)  # ... and one of another job's pseudo-labels here
     counts = beam_job.run_per_input(list(files), functools.partial(
         pseudo_label_file, out_dir=out_dir, job=job, manifest=manifest, out_manifest=out_manifest,
         skip_bad_records=skip_bad_records),
         out_dir, "pseudo_label", beam_args)
     if not nsfp_av2_check.scorable(out_manifest):
-        from ff3d_tf.config import load_config
         out_files = [os.path.join(out_dir, os.path.basename(f)) for f in files]
-        counts["scores"] = nsfp_av2_check.score_pseudo_records(out_files, cfg or load_config(None))
+        counts["scores"] = nsfp_av2_check.score_pseudo_records(out_files, cfg)
         beam_job.write_json({**counts["scores"], "job_options": dataclasses.asdict(job), "written_by": written_by},
                             os.path.join(out_dir, SCORES_NAME))
     return counts

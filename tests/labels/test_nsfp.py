@@ -343,6 +343,33 @@ def test_options_validation_names_the_field(field, value):
         nsfp.NsfpOptions(**{field: value})
 
 
+def test_options_from_config_are_the_jobs_fit_and_follow_set():
+    """The config's nsfp section holds every NsfpOptions field; by default it builds the job's fit (with the
+    challenge's box), and a --set reaches the options."""
+    from ff3d_tf import metrics_av2
+    from ff3d_tf.config import NsfpConfig, load_config
+    assert {f.name for f in dataclasses.fields(nsfp.NsfpOptions)} <= {f.name for f in dataclasses.fields(NsfpConfig)}
+    assert nsfp.options_from_config(load_config(None)) == nsfp.MEASURED_FIT_OPTIONS
+    assert nsfp.MEASURED_FIT_OPTIONS.crop_xy_half_extent_m == metrics_av2.MAX_DISTANCE_M
+    cfg = load_config(None, ["nsfp.fit_every=16", "nsfp.max_iterations=150", "nsfp.crop_z_range_m=null",
+                             "nsfp.truncate_m=1.5"])
+    assert nsfp.options_from_config(cfg) == dataclasses.replace(nsfp.MEASURED_FIT_OPTIONS, fit_every=16,
+                                                                max_iterations=150, crop_z_range_m=None,
+                                                                truncate_m=1.5)
+
+
+@pytest.mark.parametrize("field, value", [("learning_rate", -1.0), ("reverse_every", -1), ("patience", 0),
+                                          ("crop_z_range_m", (3.0, -3.0)), ("truncate_m", 0.0)])
+def test_options_and_the_config_section_state_one_rule(field, value):
+    from ff3d_tf.config import ConfigError, load_config
+    with pytest.raises(ValueError) as options_error:
+        nsfp.NsfpOptions(**{field: value})
+    with pytest.raises(ConfigError) as config_error:
+        load_config(None, [f"nsfp.{field}={list(value) if isinstance(value, tuple) else value}"])
+    rule = str(config_error.value).split(": ", 1)[1]
+    assert str(options_error.value) == f"NsfpOptions.{field}: {rule}, got {value!r}"
+
+
 def test_a_region_too_large_for_the_finest_cell_gets_a_coarser_grid():
     """Clouds 8 m across at a 1 mm cell would need ~5e11 nodes: the grid coarsens by 1.25x steps until it fits."""
     cloud = _clusters()

@@ -198,6 +198,57 @@ def test_job_options_name_the_bad_field(field, value):
         pseudo_records.JobOptions(**{field: value})
 
 
+def test_the_config_section_is_the_jobs_options():
+    """The config's nsfp section holds exactly the job's options (the fit's and those around it); by default it builds
+    the job's defaults, and a --set reaches the options it names."""
+    from ff3d_tf.config import NsfpConfig, load_config
+    job_fields = {f.name for f in dataclasses.fields(pseudo_records.JobOptions)} - {"nsfp"}
+    assert {f.name for f in dataclasses.fields(NsfpConfig)} == job_fields | {
+        f.name for f in dataclasses.fields(nsfp.NsfpOptions)}
+    assert pseudo_records.job_from_config(load_config(None)) == pseudo_records.JobOptions()
+    cfg = load_config(None, ["nsfp.retries=3", "nsfp.on_bad_fit=stop", "nsfp.ground=height", "nsfp.fit_every=2"])
+    assert pseudo_records.job_from_config(cfg) == dataclasses.replace(
+        pseudo_records.JobOptions(), retries=3, on_bad_fit="stop", ground="height",
+        nsfp=dataclasses.replace(nsfp.MEASURED_FIT_OPTIONS, fit_every=2))
+
+
+def test_a_directory_of_another_jobs_pseudo_labels_is_refused(tmp_path):
+    """The resolved config is saved beside the pseudo-labels; a rerun into that directory resumes it only with the
+    same nsfp section (another section would mix two jobs' labels): else it names the keys that differ."""
+    from ff3d_tf.config import ConfigError, load_config
+    cfg = load_config(None, ["nsfp.fit_every=2"])
+    pseudo_records.save_job_config(str(tmp_path), cfg)
+    assert load_config(str(tmp_path / pseudo_records.CONFIG_NAME)) == cfg
+    pseudo_records.save_job_config(str(tmp_path), load_config(None, ["nsfp.fit_every=2", "train.num_steps=5"]))
+    with pytest.raises(ConfigError, match=r"holds the pseudo-labels of another job: nsfp.max_iterations 5000 there, "
+                                          r"10 here, nsfp.fit_every 2 there, 4 here; use another --out_dir"):
+        pseudo_records.save_job_config(str(tmp_path), load_config(None, ["nsfp.max_iterations=10"]))
+
+
+def test_the_tool_takes_the_config_and_saves_it_beside_the_pseudo_labels(records, tmp_path):
+    """tools/pseudo_label.py: --set nsfp.KEY=VALUE reaches the job (a small MLP, a few steps on the points within
+    8 m: the job's bookkeeping, as the tests above), and the resolved config, overrides applied, lies beside the
+    pseudo-labels; the manifest names the command. A bad value stops the tool naming its key (tests/tools)."""
+    from ff3d_tf.config import load_config
+    files, manifest = records
+    sets = ["nsfp.max_iterations=8", "nsfp.patience=8", "nsfp.segment_iterations=4", "nsfp.grid_cell_m=0.5",
+            "nsfp.crop_xy_half_extent_m=8", "nsfp.hidden_layers=2", "nsfp.hidden_units=32", "nsfp.retries=0"]
+    out = tmp_path / "pseudo"
+    run = subprocess.run([sys.executable, "tools/pseudo_label.py", "--input", os.path.dirname(files[0]), "--out_dir",
+                          str(out), *[a for s in sets for a in ("--set", s)]], cwd=ROOT, capture_output=True,
+                         text=True, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    saved = load_config(str(out / pseudo_records.CONFIG_NAME))
+    assert saved == load_config(None, sets)
+    assert pseudo_records.job_from_config(saved).nsfp.hidden_units == 32 and saved.nsfp.retries == 0
+    out_manifest = pair_records.read_manifest(str(out))
+    assert out_manifest.written_by.startswith("tools/pseudo_label.py --input ") and "nsfp.hidden_units=32" in \
+        out_manifest.written_by
+    (labelled,) = [f for f in os.listdir(out) if f.endswith(pair_records.FILE_SUFFIX)]
+    got = _read(str(out / labelled), out_manifest)
+    assert len(got) == 3 and all(g["pseudo_valid_t0"].any() for g in got)
+
+
 def test_merge_counts_sums_numbers_and_joins_lists():
     assert beam_job.merge_counts([{"pairs": 2, "bad_fits": ["a"]}, {"pairs": 3, "bad_fits": ["b"]}, {"x": 1.5}]) == {
         "pairs": 5, "bad_fits": ["a", "b"], "x": 1.5}
@@ -210,8 +261,8 @@ def test_real_av2_pair_through_the_tool_beats_zero_flow(av2_sample_records, tmp_
     way EPE 0.13 m against zero flow's 0.227 (the full fit: docs, benchmarks/nsfp_cpu.json)."""
     out = tmp_path / "pseudo"
     run = subprocess.run([sys.executable, "tools/pseudo_label.py", "--input", av2_sample_records, "--out_dir",
-                          str(out), "--fit_every", "16", "--max_iterations", "150"], cwd=ROOT, capture_output=True,
-                         text=True, timeout=900)
+                          str(out), "--set", "nsfp.fit_every=16", "--set", "nsfp.max_iterations=150"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stderr[-3000:]
     scores = json.loads((out / pseudo_records.SCORES_NAME).read_text())
     got, zero = scores["nsfp"], scores["zero_flow"]

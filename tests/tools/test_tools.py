@@ -83,8 +83,12 @@ def test_annotate_flow_bad_arguments_fail_before_work(tiny_segment, tmp_path):
 
 
 def test_pseudo_label_bad_fit_option_fails_before_work(tmp_path):
-    out = subprocess.run([sys.executable, "tools/pseudo_label.py", "--input", str(tmp_path), "--out_dir",
-                          str(tmp_path / "p"), "--reverse_every", "-1"], cwd=ROOT, capture_output=True, text=True,
-                         timeout=300)
-    assert out.returncode != 0 and "NsfpOptions.reverse_every: must be an integer >= 0" in out.stderr, out.stderr
-    assert not (tmp_path / "p").exists()
+    """The job's options are the config's nsfp section: a bad value names its key; one given as a flag (which Beam
+    would drop) names the --set that sets it. Both before any work."""
+    for args, message in ((["--set", "nsfp.reverse_every=-1"], "nsfp.reverse_every=-1: must be an integer in [0, "),
+                          (["--reverse_every", "1"], "--reverse_every: the job's options are config keys: --set "
+                                                     "nsfp.reverse_every=VALUE")):
+        out = subprocess.run([sys.executable, "tools/pseudo_label.py", "--input", str(tmp_path), "--out_dir",
+                              str(tmp_path / "p"), *args], cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert out.returncode != 0 and message in out.stderr, out.stderr
+        assert not (tmp_path / "p").exists()
