@@ -15,23 +15,16 @@ Decoded frame (`ff3d_tf.data.wod.waymo.decode_frame`; one WOD `Frame`, N points 
 
 Points are ordered by ascending laser name, then return, then row-major pixel order (the official conversion's order).
 
-Model input example (`ff3d_tf.data.pairs`; one pair t-1 -> t0, N0 / N1 points):
-
-| key                    | dtype   | shape   | meaning                                                               |
-|------------------------|---------|---------|-----------------------------------------------------------------------|
-| points_xyz_t0          | float32 | [N0,3]  | t0 cloud, vehicle frame at t0, metres                                 |
-| point_features_t0      | float32 | [N0,2]  | intensity, elongation                                                 |
-| points_xyz_tm1_in_t0   | float32 | [N1,3]  | t-1 cloud moved into the vehicle frame at t0 (raw t-1 frame if the   |
-|                        |         |         | ego-motion compensation is switched off)                              |
-| point_features_tm1     | float32 | [N1,2]  | intensity, elongation                                                 |
-| flow_mps_t0            | float32 | [N0,3]  | label, m/s, vehicle frame at t0                                       |
-| class_id_t0            | int32   | [N0]    | label class (-1 = no flow label: input only, excluded from loss)      |
-| pose_t0, pose_tm1      | float64 | [4,4]   | vehicle -> world at each time (kept for the ego-motion study)         |
-| num_points_t0/_tm1     | int32   | []      | real point counts (batches are padded; see point_mask_*)              |
+Model input example (`ff3d_tf.data.pairs`; one pair t-1 -> t0, N0 / N1 points): the per-point keys of `POINT_KEYS`
+(dtype, per-point shape, whose points, frame and unit, how pair records store it: one entry per key), plus
+`pose_t0`, `pose_tm1` (float64 [4,4], vehicle -> world at each time) and `num_points_t0` / `num_points_tm1` (int32,
+real point counts; batches are padded).
 
 Batched model input adds `point_mask_t0` [B,N0] and `point_mask_tm1` [B,N1] (True = a real point, never padding).
 """
 from __future__ import annotations
+
+import dataclasses
 
 # WOD dataset.proto LaserName; returns are ri_return1 and ri_return2 of a Laser.
 LASER_NAMES = {1: "TOP", 2: "FRONT", 3: "SIDE_LEFT", 4: "SIDE_RIGHT", 5: "REAR"}
@@ -70,17 +63,57 @@ STATS_MOVING_THRESHOLD_MPS = 0.1
 FRAME_KEYS = ("points_xyz", "intensity", "elongation", "flow_mps", "class_id", "laser_name", "pose",
               "timestamp_micros")
 
-PAIR_T0_POINT_KEYS = ("points_xyz_t0", "point_features_t0", "flow_mps_t0", "class_id_t0")  # [N0, ...] per point
-PAIR_TM1_POINT_KEYS = ("points_xyz_tm1_in_t0", "point_features_tm1")  # [N1, ...] per point
-# Optional per-point keys of a pair (pair records carry them when their source has them; `ff3d_tf.data.pairs` masks
-# and pads them with their cloud's points). t0: pseudo-label flow (m/s, same convention as flow_mps_t0) and whether a
-# point has one (False: outside the fitted region, ground, or its pair's fit failed; no label, not a zero label), the
-# Argoverse 2 ground mask (True = ground by the log's ground-height raster) and the Argoverse 2 category index (-1:
-# none). t-1: the partner cloud's ground mask by the same raster.
+
+@dataclasses.dataclass(frozen=True)
+class PointKey:
+    """One per-point key of a pair: what an example holds under it, and how pair records store it."""
+    dtype: str  # of the example's tensor
+    tail_shape: tuple  # after the point axis
+    cloud: str  # "t0" or "tm1": whose points it follows (masked, padded and counted with them)
+    meaning: str  # frame and unit, or the values
+    stored: str  # dtype in pair records (`ff3d_tf.data.pair_records`, precision "exact")
+    stored_compact: str = ""  # ... with precision "compact" (empty: as `stored`)
+    optional: bool = False  # an extra: present where the source has it (a records directory's manifest lists it)
+
+
 PSEUDO_FLOW_KEY, PSEUDO_VALID_KEY = "flow_mps_pseudo_t0", "pseudo_valid_t0"
-PAIR_T0_EXTRA_POINT_KEYS = (PSEUDO_FLOW_KEY, PSEUDO_VALID_KEY, "is_ground_t0", "category_t0")
-PAIR_TM1_EXTRA_POINT_KEYS = ("is_ground_tm1",)
+# Every per-point key of a pair, in record order: the required ones, then the optional extras (pair records carry an
+# extra when their source has it; `ff3d_tf.data.pairs` masks and pads it with its cloud's points).
+POINT_KEYS = {
+    "points_xyz_t0": PointKey("float32", (3,), "t0", "t0 cloud, vehicle frame at t0, m", "float32"),
+    "point_features_t0": PointKey("float32", (2,), "t0", "intensity, elongation", "float32", "float16"),
+    "flow_mps_t0": PointKey("float32", (3,), "t0", "label: motion from t-1 to t0, vehicle frame at t0, m/s",
+                            "float32", "float16"),
+    "class_id_t0": PointKey("int32", (), "t0", "label class (CLASS_NAMES; -1 no label)", "int8"),
+    "points_xyz_tm1_in_t0": PointKey("float32", (3,), "tm1", "t-1 cloud moved into the vehicle frame at t0, m",
+                                     "float32"),
+    "point_features_tm1": PointKey("float32", (2,), "tm1", "intensity, elongation", "float32", "float16"),
+    PSEUDO_FLOW_KEY: PointKey("float32", (3,), "t0", "pseudo-label, as flow_mps_t0 (m/s)", "float32", "float16",
+                              optional=True),
+    PSEUDO_VALID_KEY: PointKey("bool", (), "t0", "the point has a pseudo-label (False: outside the fitted region, "
+                               "ground, or its pair's fit failed; no label, not a zero label)", "uint8",
+                               optional=True),
+    "is_ground_t0": PointKey("bool", (), "t0", "ground by the Argoverse 2 log's ground-height raster", "uint8",
+                             optional=True),
+    "category_t0": PointKey("int32", (), "t0", "Argoverse 2 category index (-1: none)", "int8", optional=True),
+    "is_ground_tm1": PointKey("bool", (), "tm1", "the partner cloud's ground by the same raster", "uint8",
+                              optional=True),
+}
+
+
+def _point_keys(cloud: str, optional: bool) -> tuple[str, ...]:
+    return tuple(k for k, spec in POINT_KEYS.items() if spec.cloud == cloud and spec.optional == optional)
+
+
+PAIR_T0_POINT_KEYS = _point_keys("t0", False)  # [N0, ...] per point
+PAIR_TM1_POINT_KEYS = _point_keys("tm1", False)  # [N1, ...] per point
+PAIR_T0_EXTRA_POINT_KEYS = _point_keys("t0", True)
+PAIR_TM1_EXTRA_POINT_KEYS = _point_keys("tm1", True)
 PAIR_EXTRA_POINT_KEYS = PAIR_T0_EXTRA_POINT_KEYS + PAIR_TM1_EXTRA_POINT_KEYS
+# The extras the Argoverse 2 challenge's evaluation reads (its eval mask and meta-classes), and those AV2 pair records
+# carry (also the partner cloud's ground, for the pseudo-label job).
+AV2_EVAL_KEYS = ("is_ground_t0", "category_t0")
+AV2_RECORD_EXTRAS = AV2_EVAL_KEYS + ("is_ground_tm1",)
 # What the model reads of a batched example (labels and poses are not model input).
 MODEL_INPUT_KEYS = ("points_xyz_t0", "point_features_t0", "point_mask_t0", "points_xyz_tm1_in_t0",
                     "point_features_tm1", "point_mask_tm1")

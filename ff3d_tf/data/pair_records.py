@@ -54,23 +54,12 @@ class RecordField(NamedTuple):
 
 
 _T0, _TM1 = "num_points_t0", "num_points_tm1"
-RECORD_FIELDS = {
-    "points_xyz_t0": RecordField("float32", "float32", "float32", (3,), _T0),
-    "point_features_t0": RecordField("float32", "float16", "float32", (2,), _T0),
-    "flow_mps_t0": RecordField("float32", "float16", "float32", (3,), _T0),
-    "class_id_t0": RecordField("int8", "int8", "int32", (), _T0),
-    "points_xyz_tm1_in_t0": RecordField("float32", "float32", "float32", (3,), _TM1),
-    "point_features_tm1": RecordField("float32", "float16", "float32", (2,), _TM1),
-    # Optional (schema.PAIR_EXTRA_POINT_KEYS): present in a file when its manifest lists them.
-    "flow_mps_pseudo_t0": RecordField("float32", "float16", "float32", (3,), _T0),
-    "pseudo_valid_t0": RecordField("uint8", "uint8", "bool", (), _T0),
-    "is_ground_t0": RecordField("uint8", "uint8", "bool", (), _T0),
-    "category_t0": RecordField("int8", "int8", "int32", (), _T0),
-    "is_ground_tm1": RecordField("uint8", "uint8", "bool", (), _TM1),
-}
+# The layout of every per-point key (`schema.POINT_KEYS`; the optional ones are present in a file when its manifest
+# lists them).
+RECORD_FIELDS = {key: RecordField(spec.stored, spec.stored_compact or spec.stored, spec.dtype, spec.tail_shape,
+                                  f"num_points_{spec.cloud}") for key, spec in schema.POINT_KEYS.items()}
 POSE_KEYS = ("pose_t0", "pose_tm1")  # float64 [4, 4] each
 REQUIRED_POINT_KEYS = schema.PAIR_T0_POINT_KEYS + schema.PAIR_TM1_POINT_KEYS
-assert set(RECORD_FIELDS) == set(REQUIRED_POINT_KEYS) | set(schema.PAIR_EXTRA_POINT_KEYS)
 
 
 @dataclasses.dataclass(frozen=True)

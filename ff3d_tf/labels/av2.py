@@ -20,6 +20,7 @@ import time
 import numpy as np
 import tensorflow as tf
 
+from ff3d_tf import schema
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import beam_job, pair_records, pairs
 from ff3d_tf.data.av2 import argoverse2
@@ -27,7 +28,7 @@ from ff3d_tf.data.pairs import make_pair
 from ff3d_tf.labels.box_flow import bootstrap_flow, points_in_boxes
 
 _LOG = logging.getLogger(__name__)
-AV2_EXTRAS = ("is_ground_t0", "category_t0", "is_ground_tm1")
+AV2_EXTRAS = schema.AV2_RECORD_EXTRAS
 
 
 def labelled_pair(log_dir: str, index: int = 1) -> tuple[dict, dict]:

@@ -15,7 +15,7 @@ import numpy as np
 from ff3d_tf import metrics_av2, schema
 from ff3d_tf.data import pair_records, pairs
 
-SCORE_EXTRAS = ("is_ground_t0", "category_t0", schema.PSEUDO_FLOW_KEY)
+SCORE_EXTRAS = schema.AV2_EVAL_KEYS + (schema.PSEUDO_FLOW_KEY,)
 
 
 def scorable(manifest: pair_records.Manifest) -> str:
