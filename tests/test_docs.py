@@ -1,0 +1,843 @@
+"""The README and docs/ stay true to the repository.
+
+- every relative link of README.md, data/README.md and docs/*.md leads to a file (and a heading, for `#anchor`);
+- every repository path they name in code (`tools/train.py`, `configs/...yaml`, `benchmarks/...json`, ...) exists;
+- every `ff3d_tf.module.name` (and `module.NAME` of a module whose file name is unique) is defined, read with `ast`
+  (nothing is imported); every config key (`train.peer_timeout_s`) is a field of the config's dataclasses;
+- every tool in tools/ is named somewhere;
+- every measured figure is its JSON's: the tables of docs/benchmarks.md are rendered here from benchmarks/*.json
+  (`TABLES`) and must appear in the doc exactly as rendered, each figure quoted in prose is formatted from its JSON
+  (`QUOTES`), docs/benchmarks.md holds no other table and no other number with a unit; the walk through one training
+  step (docs/architecture.md) states the lines and files it spans, counted here.
+
+After a benchmark is rerun, `python tests/test_docs.py` prints every table and quote as the docs must show them.
+"""
+from __future__ import annotations
+
+import ast
+import dataclasses
+import functools
+import glob
+import json
+import math
+import os
+import re
+from typing import Callable
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))  # the checkout, also under Bazel
+DOCS_PAGES = ("architecture", "bazel", "benchmarks", "datasets", "deployment", "label_free", "training")
+BENCHMARKS_DOC = "docs/benchmarks.md"
+REPO_DIRS = ("ff3d_tf", "tools", "configs", "benchmarks", "tests", "bazel", "data", "docs", "third_party")
+
+
+def doc_files() -> list[str]:
+    return ["README.md", "data/README.md"] + [f"docs/{p}.md" for p in DOCS_PAGES]
+
+
+@functools.cache
+def read(rel: str) -> str:
+    with open(os.path.join(ROOT, rel), encoding="utf-8") as f:
+        return f.read()
+
+
+# --- Markdown: code, links, headings ------------------------------------------------------------------------------
+
+FENCE = re.compile(r"^(```|~~~).*?^\1[ \t]*$", re.M | re.S)
+CODE_SPAN = re.compile(r"`([^`\n]+)`")
+LINK = re.compile(r"(?<!!)\[[^\]\n]*\]\(([^)\s]+)\)")
+
+
+def code_texts(text: str) -> list[str]:
+    """The fenced blocks and the inline code spans of a Markdown text."""
+    blocks = [m.group(0) for m in FENCE.finditer(text)]
+    prose = FENCE.sub("", text)
+    indented = [line for line in prose.splitlines() if line.startswith("    ") and line.strip()]
+    return blocks + indented + CODE_SPAN.findall(prose)
+
+
+def links(text: str) -> list[str]:
+    return LINK.findall(CODE_SPAN.sub("", FENCE.sub("", text)))
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation dropped (but - and _), spaces to -."""
+    text = re.sub(r"[`*]", "", heading.strip().lower())
+    return re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
+
+
+def anchors(text: str) -> set[str]:
+    return {slug(m.group(1)) for m in re.finditer(r"^#{1,6} (.+)$", FENCE.sub("", text), re.M)}
+
+
+def test_slug_and_code_parsing():
+    assert slug("Label-free training (ZeroFlow)") == "label-free-training-zeroflow"
+    assert slug("`make test` and the CPU") == "make-test-and-the-cpu"
+    text = ("a `x/y.py` b\n```\ncmd tools/a.py\n```\n[l](docs/b.md#c) ![img](p.png) `[no](link.md)`\n"
+            "    indented tools/c.py\n")
+    assert code_texts(text) == ["```\ncmd tools/a.py\n```", "    indented tools/c.py", "x/y.py", "[no](link.md)"]
+    assert links(text) == ["docs/b.md#c"]
+
+
+def test_the_docs_pages_exist():
+    assert sorted(os.path.basename(p)[:-3] for p in glob.glob(os.path.join(ROOT, "docs", "*.md"))) == \
+        sorted(DOCS_PAGES)
+
+
+def test_readme_is_short():
+    assert len(read("README.md").splitlines()) <= 250
+
+
+@pytest.mark.parametrize("doc", doc_files())
+def test_links_lead_to_files_and_headings(doc):
+    here = os.path.dirname(os.path.join(ROOT, doc))
+    broken = []
+    for target in links(read(doc)):
+        if re.match(r"[a-z][a-z0-9+.-]*:", target):  # https:, mailto:
+            continue
+        path, _, anchor = target.partition("#")
+        full = os.path.normpath(os.path.join(here, path)) if path else os.path.join(ROOT, doc)
+        if not os.path.exists(full):
+            broken.append(f"{target}: no such file")
+        elif anchor and full.endswith(".md") and anchor not in anchors(read(os.path.relpath(full, ROOT))):
+            broken.append(f"{target}: no heading #{anchor}")
+    assert not broken, f"{doc}: {broken}"
+
+
+# --- Paths, symbols and config keys named in code -----------------------------------------------------------------
+
+PATH = re.compile(r"(?<![\w./~:$-])((?:%s)/[\w./{},*<>-]*)" % "|".join(REPO_DIRS))
+
+
+def named_paths(text: str) -> list[str]:
+    """Repository paths in the code of a doc; `a/{b,c}.py` gives both; templates (`<name>`, `*`) are left out."""
+    found = []
+    for code in code_texts(text):
+        for raw in PATH.findall(code):
+            raw = raw.rstrip(".,;:")
+            if any(c in raw for c in "*<>"):
+                continue
+            brace = re.search(r"\{([^{}]*)\}", raw)
+            found += [raw[:brace.start()] + alt + raw[brace.end():] for alt in brace.group(1).split(",")] \
+                if brace else [raw]
+    return found
+
+
+@pytest.mark.parametrize("doc", doc_files())
+def test_named_paths_exist(doc):
+    missing = sorted({p for p in named_paths(read(doc)) if not os.path.exists(os.path.join(ROOT, p))})
+    assert not missing, f"{doc} names paths that do not exist: {missing}"
+
+
+def _top_level_names(body: list[ast.stmt]) -> dict[str, ast.AST]:
+    """Names a module or class body defines (functions, classes, assignments, imports), `if`/`try` blocks included."""
+    names = {}
+    for node in body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names[node.name] = node
+        elif isinstance(node, ast.Assign):
+            for target in node.targets:
+                for t in ast.walk(target):
+                    if isinstance(t, ast.Name):
+                        names[t.id] = node
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            names[node.target.id] = node
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            for alias in node.names:
+                names[(alias.asname or alias.name).split(".")[0]] = node
+        elif isinstance(node, (ast.If, ast.Try)):
+            for block in (node.body, getattr(node, "orelse", []), getattr(node, "finalbody", []),
+                          *[h.body for h in getattr(node, "handlers", [])]):
+                names.update(_top_level_names(block))
+    return names
+
+
+@functools.cache
+def module_tree(rel: str) -> ast.Module:
+    return ast.parse(read(rel), rel)
+
+
+def module_file(dotted: str) -> str | None:
+    """ff3d_tf.a.b -> ff3d_tf/a/b.py or ff3d_tf/a/b/__init__.py, None if neither exists."""
+    base = dotted.replace(".", "/")
+    for rel in (base + ".py", base + "/__init__.py"):
+        if os.path.isfile(os.path.join(ROOT, rel)):
+            return rel
+    return None
+
+
+def symbol_problem(dotted: str) -> str | None:
+    """None if `ff3d_tf.module[.name[.member]]` exists, else what is missing."""
+    parts = dotted.split(".")
+    for cut in range(len(parts), 0, -1):
+        rel = module_file(".".join(parts[:cut]))
+        if rel:
+            break
+    else:
+        return f"{dotted}: no module"
+    names = parts[cut:]
+    if not names:
+        return None
+    scope, where = _top_level_names(module_tree(rel).body), rel
+    for depth, name in enumerate(names[:2]):
+        if name not in scope:
+            return f"{dotted}: {name} is not defined in {where}"
+        node = scope[name]
+        if not isinstance(node, ast.ClassDef):
+            return None  # a function or value: its attributes are not checked
+        scope, where = _top_level_names(node.body), f"{rel}:{name}"
+    return None
+
+
+@functools.cache
+def unique_module_basenames() -> dict[str, str]:
+    """{file name without .py: dotted module} for the ff3d_tf modules whose file name no other module shares."""
+    seen: dict[str, list[str]] = {}
+    for path in glob.glob(os.path.join(ROOT, "ff3d_tf", "**", "*.py"), recursive=True):
+        rel = os.path.relpath(path, ROOT)
+        if not rel.endswith("__init__.py"):
+            seen.setdefault(os.path.basename(rel)[:-3], []).append(rel[:-3].replace("/", "."))
+    return {k: v[0] for k, v in seen.items() if len(v) == 1}
+
+
+@functools.cache
+def config_fields() -> dict[str, set[str]]:
+    """{section: its field names} of `ff3d_tf.config.ExperimentConfig`, read from the source."""
+    scope = _top_level_names(module_tree("ff3d_tf/config.py").body)
+    sections = {}
+    for node in scope["ExperimentConfig"].body:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.annotation, ast.Name):
+            cls = scope[node.annotation.id]
+            sections[node.target.id] = {n.target.id for n in cls.body
+                                        if isinstance(n, ast.AnnAssign) and isinstance(n.target, ast.Name)}
+            sections[node.target.id] |= {n.name for n in cls.body if isinstance(n, ast.FunctionDef)}  # properties
+    return sections
+
+
+FULL_SYMBOL = re.compile(r"(?<![\w./])(ff3d_tf(?:\.[A-Za-z_]\w*)+)")
+FILE_SUFFIXES = {"py", "json", "csv", "yaml", "md", "txt", "onnx", "npz", "npy", "rrd", "zip", "feather", "pcd", "ply",
+                 "bin", "sh", "png", "bzl", "tfrecord", "jaxexport", "partial"}
+SHORT_SYMBOL = re.compile(r"(?<![\w./=-])([a-z_][a-z0-9_]*)\.([A-Za-z_]\w*)(?![\w/]|\.\w)")
+
+
+def symbol_problems(text: str) -> list[str]:
+    problems = []
+    for code in code_texts(text):
+        for dotted in FULL_SYMBOL.findall(code):
+            if problem := symbol_problem(dotted):
+                problems.append(problem)
+        for first, name in SHORT_SYMBOL.findall(code):
+            if name in FILE_SUFFIXES:
+                continue  # metrics.json, model.onnx: a file name
+            sections, modules = config_fields(), unique_module_basenames()
+            if first not in sections and first not in modules:
+                continue  # tf.where, np.float32, a file name: not the project's
+            if name in sections.get(first, ()):
+                continue
+            if first in modules and symbol_problem(f"{modules[first]}.{name}") is None:
+                continue
+            problems.append(f"{first}.{name}: " + ("no such config key" if first in sections else
+                                                  f"not defined in {modules[first]}"))
+    return problems
+
+
+def test_symbol_and_config_checks_find_what_is_missing():
+    assert symbol_problem("ff3d_tf.model.step.adam_update") is None
+    assert symbol_problem("ff3d_tf.training.trainer.Trainer.step") is None
+    assert symbol_problem("ff3d_tf.model.step.no_such_function") is not None
+    assert symbol_problem("ff3d_tf.no_such_module") is not None
+    assert symbol_problems("`train.peer_timeout_s`, `geometry.POSE_RIGIDITY_TOLERANCE`, `tf.where`, "
+                           "`metrics.json`") == []
+    assert len(symbol_problems("`train.no_such_key` and `geometry.POSE_TOLERANCE`")) == 2
+
+
+@pytest.mark.parametrize("doc", doc_files())
+def test_named_symbols_and_config_keys_exist(doc):
+    problems = sorted(set(symbol_problems(read(doc))))
+    assert not problems, f"{doc}: {problems}"
+
+
+def test_every_tool_is_documented():
+    text = "\n".join(read(d) for d in doc_files())
+    tools = [f"tools/{n}" for n in sorted(os.listdir(os.path.join(ROOT, "tools")))
+             if n.endswith((".py", ".sh")) and not n.startswith("_")]
+    assert [t for t in tools if t not in text] == []
+
+
+# --- Figures -------------------------------------------------------------------------------------------------------
+
+@functools.cache
+def source(name: str):
+    """A benchmarks/*.json file by name, or the literal constants of a Python file (`ff3d_tf/...py`)."""
+    if name.endswith(".py"):
+        return {k: ast.literal_eval(v.value) for k, v in _top_level_names(module_tree(name).body).items()
+                if isinstance(v, ast.Assign) and _is_literal(v.value)}
+    with open(os.path.join(ROOT, "benchmarks", name)) as f:
+        return json.load(f)
+
+
+def _is_literal(node) -> bool:
+    try:
+        ast.literal_eval(node)
+        return True
+    except ValueError:
+        return False
+
+
+def lookup(data, path):
+    """The value at "a/b/c": a key may itself hold "/" ("auto/float32"; the shortest key that exists is taken, or
+    give the path as a tuple of keys); a list item by its fields: "latency[points=32000,precision=tf32]"; a key that
+    is not in a dict is also tried as an int."""
+    parts = list(path) if isinstance(path, tuple) else path.split("/")
+    while parts:
+        part = parts.pop(0)
+        key, _, select = part.partition("[")
+        if key:
+            if isinstance(data, dict) and not isinstance(path, tuple):
+                while key not in data and parts and not key.lstrip("-").isdigit():
+                    more, _, select = parts.pop(0).partition("[")
+                    key = f"{key}/{more}"
+            if isinstance(data, dict) and key not in data and key.lstrip("-").isdigit():
+                key = int(key)
+            data = data[key]
+        if select:
+            wanted = dict(kv.split("=") for kv in select.rstrip("]").split(","))
+            matches = [item for item in data if all(str(item.get(k)) == v for k, v in wanted.items())]
+            assert len(matches) == 1, f"{path}: {len(matches)} items match"
+            data = matches[0]
+    return data
+
+
+@dataclasses.dataclass(frozen=True)
+class V:
+    """A figure: the value at `path` of `file` (benchmarks/<file>, or a Python file's constant), formatted by `fmt`."""
+    file: str
+    path: str | tuple
+    fmt: str = "{}"
+
+    def value(self):
+        return lookup(source(self.file), self.path)
+
+    def text(self) -> str:
+        return self.fmt.format(self.value())
+
+
+@dataclasses.dataclass(frozen=True)
+class Calc:
+    """A figure computed from figures (a ratio, a sum), formatted by `fmt`."""
+    fmt: str
+    fn: Callable
+    args: tuple
+
+    def value(self):
+        return self.fn(*[a.value() for a in self.args])
+
+    def text(self) -> str:
+        return self.fmt.format(self.value())
+
+
+def ratio(fmt: str, a, b) -> Calc:
+    return Calc(fmt, lambda x, y: x / y, (a, b))
+
+
+def render(cell) -> str:
+    return cell if isinstance(cell, str) else cell.text()
+
+
+@dataclasses.dataclass(frozen=True)
+class Quote:
+    """Figures in a sentence of `doc`: `template` with each {} replaced by a figure's text."""
+    doc: str
+    template: str
+    figures: tuple
+
+    def text(self) -> str:
+        return self.template.format(*[render(f) for f in self.figures])
+
+
+@dataclasses.dataclass(frozen=True)
+class Table:
+    """A table of `doc`, rendered from its figures: a caption line (naming the machine), the header, the rows."""
+    doc: str
+    caption: Quote
+    header: tuple
+    align: str  # one character per column: l or r
+    rows: tuple
+
+    def rows_text(self) -> str:
+        lines = ["| " + " | ".join(self.header) + " |",
+                 "|" + "|".join("---:" if a == "r" else "---" for a in self.align) + "|"]
+        lines += ["| " + " | ".join(render(c) for c in row) + " |" for row in self.rows]
+        return "\n".join(lines)
+
+    def text(self) -> str:
+        return f"{self.caption.text()}\n\n{self.rows_text()}"
+
+
+B = BENCHMARKS_DOC
+
+
+def _ms(file, path):
+    return V(file, path, "{:,.0f} ms")
+
+
+# -- inference on CPU by compile mode (benchmark_latency.py)
+_LAT = "latency_cpu.json"
+_LAT_CAPTION = Quote(B, "`benchmarks/latency_cpu.json`, paper config, batch 1, median of {} calls, a {}-core VM:",
+                     (V(_LAT, "latency/32000/auto/runs"), V(_LAT, "cpu_count")))
+_MODES = ("auto", "hybrid", "xla", "none")
+LATENCY_TABLE = Table(B, _LAT_CAPTION, ("`model.compile`", "forward, 32,000 points", "forward, 1,000,000 points",
+                                        "training step, 32,000 points"), "lrrr",
+                      tuple((f"`{m}`", _ms(_LAT, f"latency/32000/{m}/median_ms"),
+                             _ms(_LAT, f"latency/1000000/{m}/median_ms"), _ms(_LAT, f"train_step/{m}/median_ms"))
+                            for m in _MODES))
+
+# -- bfloat16 on three CPUs (benchmark_bf16.py)
+_AMD, _AMX = "bf16_cpu_amd.json", "bf16_cpu_amx.json"
+_BF16_FILES = (_AMD, _AMX, "bf16_cpu.json")
+
+
+def _cpu_name(file):
+    return Calc("{}", lambda name, flags: f"{name} ({', '.join(flags)})",
+                (V(file, "cpu/model_name"), V(file, "cpu/bf16_flags")))
+
+
+def _bf16_cell(file, points):
+    return Calc("{}", lambda a, b, s: f"{a:,.0f} -> {b:,.0f} ms ({s:.2f}x)",
+                (V(file, f"latency/latency/{points}/auto/float32/median_ms"),
+                 V(file, f"latency/latency/{points}/auto/bfloat16/median_ms"),
+                 V(file, f"summary/inference_speedup_bfloat16_median/{points}")))
+
+
+BF16_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_bf16.py`, paper config, compile mode hybrid, medians of {} calls, {} cores of each "
+                "CPU:", (V(_AMD, "latency/latency/32000/auto/float32/runs"), V(_AMD, "cpu/cpu_count"))),
+    ("CPU (its bfloat16 flags)", "`auto` picks", "inference, 32,000 points", "inference, 1,000,000 points",
+     "training step, 32,000 points: speed-up", "file"), "llrrrl",
+    tuple((_cpu_name(f), V(f, "cpu/auto_resolves_to"), _bf16_cell(f, 32000), _bf16_cell(f, 1000000),
+           V(f, "summary/train_step_speedup_bfloat16_median", "{:.2f}x"), f"`benchmarks/{f}`")
+          for f in _BF16_FILES))
+
+# -- memory between calls (profile_memory.py)
+_MEM = "memory_cpu.json"
+MEMORY_TABLE = Table(
+    B, Quote(B, "`tools/profile_memory.py`, paper config, {} points, batch 1, resident memory (GB) of a process "
+                "on a {}-core VM; CPU time relative to the default:",
+             (V(_MEM, "points", "{:,}"), V(_MEM, "cpu_count"))),
+    ("allocator", "between training steps", "between inference calls", "CPU time per step",
+     "CPU time per inference call"), "lrrrr",
+    (("default (oneDNN's pool)", V(_MEM, "variants/tf_bfc_pool/summary/train/rss_between_gb", "{:.2f}"),
+      V(_MEM, "variants/tf_bfc_pool/summary/infer/rss_between_gb", "{:.2f}"), "1", "1"),
+     ("`TF_ONEDNN_USE_SYSTEM_ALLOCATOR=1`",
+      V(_MEM, "variants/system_allocator/summary/train/rss_between_gb", "{:.2f}"),
+      V(_MEM, "variants/system_allocator/summary/infer/rss_between_gb", "{:.2f}"),
+      ratio("{:.2f}", V(_MEM, "variants/system_allocator/summary/train/median_cpu_ms"),
+            V(_MEM, "variants/tf_bfc_pool/summary/train/median_cpu_ms")),
+      ratio("{:.2f}", V(_MEM, "variants/system_allocator/summary/infer/median_cpu_ms"),
+            V(_MEM, "variants/tf_bfc_pool/summary/infer/median_cpu_ms")))))
+
+# -- ONNX (benchmark_onnx.py)
+_ONNX = "onnx_cpu.json"
+ONNX_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_onnx.py`, paper config, random weights, {} points, medians of {} calls, "
+                "onnxruntime {} with {} threads, a {}-core VM:",
+             (V(_ONNX, "points", "{:,}"), V(_ONNX, "runs"), V(_ONNX, "versions/onnxruntime"),
+              V(_ONNX, "onnxruntime_intra_op_threads"), V(_ONNX, "cpu_count"))),
+    ("runtime", "median", "over TensorFlow", "largest flow difference from TensorFlow"), "lrrr",
+    (("TensorFlow (SavedModel forward)", _ms(_ONNX, "latency/tensorflow/median_ms"), "1", "0"),
+     ("onnxruntime, `loop`", _ms(_ONNX, "latency/onnxruntime_loop/median_ms"),
+      V(_ONNX, "ratios_over_tensorflow/onnxruntime_loop", "{:.2f}"),
+      V(_ONNX, "accuracy/onnxruntime_loop/max_abs_flow_diff_mps", "{:.1e} m/s")),
+     ("onnxruntime, `single_chunk`", _ms(_ONNX, "latency/onnxruntime_single_chunk/median_ms"),
+      V(_ONNX, "ratios_over_tensorflow/onnxruntime_single_chunk", "{:.2f}"),
+      V(_ONNX, "accuracy/onnxruntime_single_chunk/max_abs_flow_diff_mps", "{:.1e} m/s"))))
+
+# -- portable XLA on an H200 (run_xla.py via gpu_check.sh)
+_GPU = "xla_latency_gpu.json"
+_P100 = "ff3d_tf/inference/xla_timing.py"
+
+
+def _gpu_ms(points, precision):
+    return V(_GPU, f"latency[points={points},precision={precision}]/median_ms", "{:.2f} ms")
+
+
+def _speedup(points, precision):
+    return ratio("{:.0f}x", V(_P100, f"PAPER_P100_LATENCY_MS/{points}"),
+                 V(_GPU, f"latency[points={points},precision={precision}]/median_ms"))
+
+
+GPU_FORWARD_TABLE = Table(
+    B, Quote(B, "`tools/gpu_check.sh` on an {} (jax {}), random weights, medians of {} forward passes after {} "
+                "warm-up, clouds on the device:",
+             (V(_GPU, "device"), V(_GPU, "jax"), V(_GPU, "latency[points=32000,precision=tf32]/runs"),
+              V(_GPU, "latency[points=32000,precision=tf32]/warmup"))),
+    ("points", "float32 (HIGHEST)", "tf32", "bfloat16", "paper, P100", "tf32 speed-up", "bfloat16 speed-up"),
+    "rrrrrrr",
+    tuple((f"{p:,}", _gpu_ms(p, "float32"), _gpu_ms(p, "tf32"), _gpu_ms(p, "bfloat16"),
+           V(_P100, f"PAPER_P100_LATENCY_MS/{p}", "{} ms"), _speedup(p, "tf32"), _speedup(p, "bfloat16"))
+          for p in (32000, 1000000)))
+
+
+def _step(batch, precision, key, fmt):
+    return V(_GPU, f"train_step[batch_size={batch},precision={precision}]/{key}", fmt)
+
+
+GPU_TRAIN_TABLE = Table(
+    B, Quote(B, "The training step (forward, loss, backward, Adam) on the same {}, {} points a cloud, medians of "
+                "{} steps:", (V(_GPU, "device"), V(_GPU, "train_step[batch_size=1,precision=tf32]/points", "{:,}"),
+                              V(_GPU, "train_step[batch_size=1,precision=tf32]/runs"))),
+    ("batch", "precision", "ms per step", "ms per pair", "pairs/s"), "rlrrr",
+    tuple((str(b), p, _step(b, p, "median_ms", "{:.1f}"), _step(b, p, "ms_per_pair", "{:.1f}"),
+           _step(b, p, "pairs_per_s", "{:.0f}")) for p in ("float32", "tf32", "bfloat16") for b in (1, 8)))
+
+# -- input (benchmark_input.py, benchmark_training.py)
+_IN = "input_cpu.json"
+
+
+def _rate(density, key):
+    return V(_IN, f"densities/{density}/per_core_per_s/1/{key}", "{:.1f}")
+
+
+INPUT_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_input.py`, the trainer's whole input (read, pair, shuffle, batch, pad), pairs/s "
+                "on 1 core of a {}-core VM; synthetic WOD segments at WOD's density ({} points a frame) and at "
+                "the synthetic default's ({}):",
+             (V(_IN, "cpus_available"), V(_IN, "densities/wod/sizes/points_per_frame", "{:,}"),
+              V(_IN, "densities/synthetic/sizes/points_per_frame", "{:,}"))),
+    ("input", "WOD density", "synthetic default"), "lrr",
+    (("decode WOD frames on the fly", _rate("wod", "decode_pair_batch"), _rate("synthetic", "decode_pair_batch")),
+     ("pair records, exact", _rate("wod", "records_exact"), _rate("synthetic", "records_exact")),
+     ("pair records, compact", _rate("wod", "records_compact"), _rate("synthetic", "records_compact"))))
+
+
+def _av2_rate(key):
+    return V(_IN, f"av2/per_core_per_s/1/{key}", "{:.1f}")
+
+
+AV2_INPUT_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_input.py --av2`, synthetic Argoverse 2 logs at {} points a sweep, pairs/s on 1 "
+                "core of a {}-core VM:", (V(_IN, "av2/points_per_sweep", "{:,}"), V(_IN, "av2/cpus_available"))),
+    ("step", "pairs/s"), "lr",
+    (("labels made in the input pipeline (no records)", _av2_rate("labels_in_pipeline")),
+     ("trainer's input from records, exact", _av2_rate("records_exact")),
+     ("trainer's input from records, compact", _av2_rate("records_compact")),
+     ("writing records (`tools/write_pair_records.py --source av2`), exact", _av2_rate("write_exact"))))
+
+_TR = "training_cpu.json"
+TRAINING_INPUT_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_training.py`, paper config, batch 1, synthetic WOD segments at full size "
+                "({} points a cloud), a {}-core VM:",
+             (V(_TR, "input[cores=1]/mean_points_t0", "{:,.0f}"), V(_TR, "cpus_available"))),
+    ("measurement", "result"), "lr",
+    (("training input alone, 1 core", V(_TR, "input[cores=1]/pairs_per_s", "{:.1f} pairs/s")),
+     ("training input alone, 2 cores", V(_TR, "input[cores=2]/pairs_per_s", "{:.1f} pairs/s")),
+     ("frames decoded for 6 pairs of 8 frames", V(_TR, "decode_count/decodes")),
+     ("training step on a batch held in memory", V(_TR, "train_step/mean_step_s", "{:.1f} s")),
+     ("training step fed by the real input", V(_TR, "end_to_end/mean_step_s", "{:.1f} s"))))
+
+
+def _cores(precision, batch):
+    return Calc("{}", lambda per_s, core: math.ceil(per_s / core),
+                (V(_GPU, f"train_step[batch_size={batch},precision={precision}]/pairs_per_s"),
+                 V(_TR, "input[cores=1]/pairs_per_s")))
+
+
+SIZING_TABLE = Table(
+    B, Quote(B, "Decoding cores an {} needs at the 1-core rate above (pairs/s it trains, divided by that rate, "
+                "rounded up):", (V(_GPU, "device"),)),
+    ("training step", "pairs/s", "decoding cores"), "lrr",
+    tuple((f"{p}, batch {b}", _step(b, p, "pairs_per_s", "{:.0f}"), _cores(p, b))
+          for p, b in (("float32", 8), ("tf32", 1), ("tf32", 8), ("bfloat16", 8))))
+
+# -- NSFP speed (benchmark_nsfp.py)
+_NSFP = "nsfp_cpu.json"
+NSFP_SPEED_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_nsfp.py`, the job's fit (`nsfp.MEASURED_FIT_OPTIONS`), {} points a cloud, "
+                "{} ({} cores):", (V(_NSFP, "speed/points", "{:,}"), V(_NSFP, "machine/model_name"),
+                                   V(_NSFP, "machine/cpu_count"))),
+    ("Chamfer distances by", "seconds per Adam step", "grids of both clouds"), "lrr",
+    (("the distance transform (default)", V(_NSFP, "speed/distance_transform/seconds_per_step", "{:.2f} s"),
+      V(_NSFP, "speed/distance_transform/grid_build_s_both_clouds", "{:.2f} s")),
+     ("exact nearest neighbours (`--exact_chamfer`)",
+      V(_NSFP, "speed/exact_nearest_neighbours/seconds_per_step", "{:.2f} s"), "none")))
+
+# -- NSFP pseudo-labels of the Argoverse 2 sample through the tools (benchmark_nsfp.py, section av2_sample)
+_AV2S = "av2_sample"
+
+
+def _av2_score(who, key, fmt):
+    return V(_NSFP, f"{_AV2S}/{who}/{key}", fmt)
+
+
+NSFP_QUALITY_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_nsfp.py` on `data/av2_sample_log` (one real pair): `tools/write_pair_records.py "
+                "--source av2`, then `tools/pseudo_label.py` with its defaults, whose own scores by the challenge's "
+                "arithmetic are these ({} points scored; {}, {} cores):",
+             (V(_NSFP, f"{_AV2S}/evaluated_points", "{:,}"), V(_NSFP, "machine/model_name"),
+              V(_NSFP, "machine/cpu_count"))),
+    ("", "three-way EPE", "foreground dynamic EPE", "bucketed normalized dynamic EPE"), "lrrr",
+    (("NSFP pseudo-labels", _av2_score("nsfp", "three_way/mean_epe_m", "{:.3f} m"),
+      _av2_score("nsfp", "three_way/fg_dynamic_epe_m", "{:.3f} m"),
+      _av2_score("nsfp", "bucketed/mean_dynamic_norm_epe", "{:.3f}")),
+     ("zero flow", _av2_score("zero_flow", "three_way/mean_epe_m", "{:.3f} m"),
+      _av2_score("zero_flow", "three_way/fg_dynamic_epe_m", "{:.3f} m"),
+      _av2_score("zero_flow", "bucketed/mean_dynamic_norm_epe", "{:.3f}")),
+     ("the bar (at most)", V(_NSFP, (_AV2S, "bar_at_most", "three_way/mean_epe_m"), "{} m"), "",
+      V(_NSFP, (_AV2S, "bar_at_most", "bucketed/mean_dynamic_norm_epe")))))
+
+# -- distillation (benchmark_distillation.py)
+_DI = "distillation_synthetic.json"
+
+
+def _verdict(key, who, fmt="{:.2f}"):
+    return V(_DI, f"verdict/{key}/{who}", fmt)
+
+
+DISTILLATION_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_distillation.py`, synthetic WOD at lidar scale {} ({} training and {} held-out "
+                "segments), `{}`, {} training steps, NSFP capped at {} steps; error on the held-out pairs against "
+                "their human labels, a {}-core VM:",
+             (V(_DI, "options/lidar_scale"), V(_DI, "options/train_segments"), V(_DI, "options/eval_segments"),
+              V(_DI, "options/config"), V(_DI, "options/steps"), V(_DI, "options/nsfp/max_iterations"),
+              V(_DI, "machine/cpus"))),
+    ("", "moving (m/s)", "stationary (m/s)", "foreground dynamic EPE (m)"), "lrrr",
+    (("FastFlow3D, human labels", _verdict("all_moving_mean_l2_mps", "human"),
+      _verdict("all_stationary_mean_l2_mps", "human"), _verdict("fg_dynamic_epe_m", "human", "{:.3f}")),
+     ("FastFlow3D, NSFP pseudo-labels", _verdict("all_moving_mean_l2_mps", "pseudo"),
+      _verdict("all_stationary_mean_l2_mps", "pseudo"), _verdict("fg_dynamic_epe_m", "pseudo", "{:.3f}")),
+     ("zero flow", _verdict("all_moving_mean_l2_mps", "zero_flow"),
+      _verdict("all_stationary_mean_l2_mps", "zero_flow"), _verdict("fg_dynamic_epe_m", "zero_flow", "{:.3f}")),
+     ("the pseudo-labels themselves (training pairs)",
+      V(_DI, ("pseudo_labels", "metrics", "all/moving/mean_l2_mps"), "{:.2f}"),
+      V(_DI, ("pseudo_labels", "metrics", "all/stationary/mean_l2_mps"), "{:.2f}"), "")))
+
+# -- faults (soak_train.py)
+_SOAK = "soak_train.json"
+_SOAK_KINDS = (("plain", "SIGKILL trainer"), ("plain", "SIGTERM trainer"), ("service", "SIGKILL dispatcher"),
+               ("service", "SIGKILL input"), ("service", "SIGKILL trainer"), ("service", "SIGTERM dispatcher"),
+               ("service", "SIGTERM input"), ("service", "SIGTERM trainer"))
+
+
+def _soak(mode, kind, key, fmt="{}"):
+    return V(_SOAK, f"{mode}/summary/by_kind/{kind}/{key}", fmt)
+
+
+SOAK_TABLE = Table(
+    B, Quote(B, "`tools/soak_train.py`, two trainers on loopback (tiny model), a 2-core VM; {} faults over {} steps "
+                "without the service, {} over {} with it:",
+             (V(_SOAK, "plain/faults_injected"), V(_SOAK, "plain/final_step"), V(_SOAK, "service/faults_injected"),
+              V(_SOAK, "service/final_step"))),
+    ("run", "fault", "count", "detected, median / max", "resumed, median / max", "steps lost, max"), "llrrrr",
+    tuple(("trainers alone" if mode == "plain" else "with the tf.data service", kind, _soak(mode, kind, "count"),
+           Calc("{}", lambda a, b: f"{a:.1f} / {b:.1f} s",
+                (_soak(mode, kind, "detect_s_median"), _soak(mode, kind, "detect_s_max"))),
+           Calc("{}", lambda a, b: f"{a:.0f} / {b:.0f} s",
+                (_soak(mode, kind, "resume_s_median"), _soak(mode, kind, "resume_s_max"))),
+           _soak(mode, kind, "steps_lost_max")) for mode, kind in _SOAK_KINDS))
+
+TABLES = (LATENCY_TABLE, BF16_TABLE, MEMORY_TABLE, ONNX_TABLE, GPU_FORWARD_TABLE, GPU_TRAIN_TABLE, INPUT_TABLE,
+          AV2_INPUT_TABLE, TRAINING_INPUT_TABLE, SIZING_TABLE, NSFP_SPEED_TABLE, NSFP_QUALITY_TABLE, DISTILLATION_TABLE,
+          SOAK_TABLE)
+
+_1M = "latency_cpu_1m.json"
+_AMD_DIFF = "summary/flow_difference_bfloat16_vs_float32_mps"
+_AMX_DEMO = "demo/relative_difference_vs_float32"
+_NX = "nsfp_xla_cpu.json"
+_AN = "annotation_cpu.json"
+
+
+def _mb(figure) -> Calc:
+    return Calc("{:.1f}", lambda b: b / 1e6, (figure,))
+
+
+def _gpu_ref(precision, fmt):
+    return V(_GPU, f"latency[points=32000,precision={precision}]/reference/max_abs_flow_diff_mps", fmt)
+
+
+QUOTES = (
+    Quote("README.md", "the model exactly as the paper's architecture table ({} parameters)",
+          (V(_LAT, "params", "{:,}"),)),
+    Quote(B, "Peak resident memory of a process that runs the forward on {} points, one compile mode per process "
+             "(`benchmarks/latency_cpu_1m.json`, a {}-core VM): {} GB in `auto`, {} GB in `xla`.",
+          (V(_1M, "latency/1000000/auto/padded_points", "{:,}"), V(_1M, "cpu_count"),
+           V(_1M, ("memory_single_mode_runs", "after/auto", "1000000", "peak_rss_gb"), "{:.2f}"),
+           V(_1M, ("memory_single_mode_runs", "after/xla", "1000000", "peak_rss_gb"), "{:.2f}"))),
+    Quote(B, "On random weights of the paper config (`benchmarks/bf16_cpu_amd.json`, {}), bfloat16 moves the flow by "
+             "at most {} m/s at 32,000 points (mean {} of the mean flow) and {} m/s at 1,000,000 points (mean {}).",
+          (V(_AMD, "cpu/model_name"), V(_AMD, f"{_AMD_DIFF}/32000/max", "{:.2f}"),
+           V(_AMD, f"{_AMD_DIFF}/32000/mean_over_mean_flow_norm", "{:.2%}"),
+           V(_AMD, f"{_AMD_DIFF}/1000000/max", "{:.1f}"),
+           V(_AMD, f"{_AMD_DIFF}/1000000/mean_over_mean_flow_norm", "{:.2%}"))),
+    Quote(B, "The demo's model trained {} steps in bfloat16 (`benchmarks/bf16_cpu_amx.json`, {} with amx_bf16) differs "
+             "from the float32 model in its error by {} on moving points and {} on stationary ones (one seed each: "
+             "training noise); float32 weights run in bfloat16 change the error on moving points by {}.",
+          (V(_AMX, "demo/train_steps"), V(_AMX, "cpu/model_name"),
+           V(_AMX, (*_AMX_DEMO.split("/"), "trained_bfloat16", "all/moving/mean_l2_mps"), "{:+.1%}"),
+           V(_AMX, (*_AMX_DEMO.split("/"), "trained_bfloat16", "all/stationary/mean_l2_mps"), "{:+.1%}"),
+           V(_AMX, (*_AMX_DEMO.split("/"), "float32_weights_bfloat16_inference", "all/moving/mean_l2_mps"),
+             "{:+.2%}"))),
+    Quote(B, "Against TensorFlow on the export machine (CPU, float32), on the same inputs at 32,000 points: float32 "
+             "flow within {} m/s, tf32 within {} m/s, bfloat16 within {} m/s (random weights), validity identical.",
+          (_gpu_ref("float32", "{:.1e}"), _gpu_ref("tf32", "{:.3f}"), _gpu_ref("bfloat16", "{:.2f}"))),
+    Quote(B, "Disk per pair at WOD's density: {} MB exact, {} MB compact, against {} MB per WOD frame record; for "
+             "WOD's training split {} TB exact, {} TB compact. Writing runs at {} pairs/s per core.",
+          (_mb(V(_IN, "densities/wod/sizes/exact_bytes_per_pair")),
+           _mb(V(_IN, "densities/wod/sizes/compact_bytes_per_pair")),
+           _mb(V(_IN, "densities/wod/sizes/frame_record_bytes")),
+           V(_IN, "densities/wod/sizes/exact_wod_train_split_tb", "{:.2f}"),
+           V(_IN, "densities/wod/sizes/compact_wod_train_split_tb", "{:.2f}"),
+           V(_IN, "densities/wod/sizes/exact_write_pairs_per_s", "{:.1f}"))),
+    Quote(B, "Argoverse 2 records take {} MB a pair exact and {} MB compact.",
+          (_mb(V(_IN, "av2/runs/1/write_exact/bytes_per_pair")),
+           _mb(V(_IN, "av2/runs/1/write_compact/bytes_per_pair")))),
+    Quote(B, "the input is {} times faster than the step",
+          (V(_TR, "input_headroom", "{:.0f}"),)),
+    Quote(B, "Through the exported float32 program a step takes {} s against {} s in TensorFlow, a grid build {} s "
+             "against {} s per cloud ({} points, NSFP's published one-sided fit; `benchmarks/nsfp_xla_cpu.json`, "
+             "jax {} on the CPU of a 2-core VM).",
+          (V(_NX, "jax_seconds_per_step", "{:.2f}"), V(_NX, "tf_seconds_per_step", "{:.2f}"),
+           V(_NX, "jax_grid_s_one_cloud", "{:.1f}"), V(_NX, "tf_grid_s_one_cloud", "{:.1f}"),
+           V(_NX, "points", "{:,}"), V(_NX, "exported_with/jax"))),
+    Quote(B, "Bar met: {}. The two tools took {} s together; the fit stopped early after {} Adam steps, and {} of the "
+             "scored points had no pseudo-label (they are scored as zero flow).",
+          (Calc("{}", lambda met: "yes" if met else "no", (V(_NSFP, f"{_AV2S}/meets_bar"),)),
+           V(_NSFP, f"{_AV2S}/wall_s_both_tools", "{:.0f}"), V(_NSFP, f"{_AV2S}/counts/nsfp_iterations"),
+           V(_NSFP, f"{_AV2S}/evaluated_points_without_pseudo_label", "{:,}"))),
+    Quote(B, "At those {} steps a pair of the benchmark cloud costs {} s with the distance transform and {} s with "
+             "exact nearest neighbours; at the cap of {} steps, {} s and {} s.",
+          (V(_NSFP, f"{_AV2S}/counts/nsfp_iterations"),
+           V(_NSFP, "seconds_per_pair/distance_transform/av2_sample_steps", "{:,.0f}"),
+           V(_NSFP, "seconds_per_pair/exact_nearest_neighbours/av2_sample_steps", "{:,.0f}"),
+           V(_NSFP, "options/max_iterations", "{:,}"),
+           V(_NSFP, "seconds_per_pair/distance_transform/max_iterations", "{:,.0f}"),
+           V(_NSFP, "seconds_per_pair/exact_nearest_neighbours/max_iterations", "{:,.0f}"))),
+    Quote(B, "Pseudo-label training's error on moving points is {}x zero flow's and {}x the human-labelled model's",
+          (V(_DI, "verdict/pseudo_over_zero_flow_moving", "{:.2f}"),
+           V(_DI, "verdict/pseudo_over_human_moving", "{:.2f}"))),
+    Quote(B, "Trainers alone: {} unexpected outcomes, {} hangs, {} lost checkpoints; the final weights equal an "
+             "uninterrupted run's bit for bit ({} variables compared). With the service: {} unexpected outcomes, {} "
+             "hangs, {} lost checkpoints; the mean loss of the last {} steps is {}x the uninterrupted run's (batches "
+             "arrive in another order, so weights are not compared).",
+          (V(_SOAK, "plain/summary/not_as_expected"), V(_SOAK, "plain/summary/hangs"),
+           V(_SOAK, "plain/summary/lost_checkpoints"), V(_SOAK, "plain/variables_compared"),
+           V(_SOAK, "service/summary/not_as_expected"), V(_SOAK, "service/summary/hangs"),
+           V(_SOAK, "service/summary/lost_checkpoints"),
+           V(_SOAK, "service/loss_window_steps"), V(_SOAK, "service/loss_ratio", "{:.2f}"))),
+    Quote(B, "(`benchmarks/annotation_cpu.json`, a synthetic segment of {} frames, {} points a frame, a {}-core VM): "
+             "the first segment of a process takes {} s to its first frame (the decoder is traced once per process), "
+             "then {} frames/s; later segments run at {} frames/s.",
+          (V(_AN, "frames"), V(_AN, "points_per_frame", "{:,.0f}"), V(_AN, "cpu_count"),
+           V(_AN, "cold_first_frame_seconds", "{:.1f}"), V(_AN, "cold_steady_fps", "{:.1f}"),
+           V(_AN, "warm_steady_fps", "{:.1f}"))),
+)
+
+
+def test_lookup_render_and_the_figure_pattern():
+    data = {"latency": {"32000": {"auto/float32": {"ms": 1400.07}}}, "runs": [{"p": 1, "v": 2}, {"p": 2, "v": 3}],
+            "by_int": {5: "five"}}
+    assert lookup(data, "latency/32000/auto/float32/ms") == 1400.07  # a key holding "/"
+    assert lookup(data, ("latency", "32000", "auto/float32", "ms")) == 1400.07
+    assert lookup(data, "runs[p=2]/v") == 3 and lookup(data, "by_int/5") == "five"
+    table = Table("d.md", Quote("d.md", "caption on a {}-core VM:", ("2",)), ("a", "b"), "lr", (("x", "1.5 s"),))
+    assert table.text() == "caption on a 2-core VM:\n\n| a | b |\n|---|---:|\n| x | 1.5 s |"
+    assert FIGURE_WITH_UNIT.findall("3.5 s, 1,234 ms, 4.1x, 12%, 0.5 m/s, 2.80 GB, 7.3 pairs/s; v2, 2-core") == \
+        ["3.5 s", "1,234 ms", "4.1x", "12%", "0.5 m/s", "2.80 GB", "7.3 pairs/s"]
+
+
+def _tables_of(text: str) -> list[str]:
+    """Each Markdown table of a text (its consecutive lines starting with "|")."""
+    return [m.group(0) for m in re.finditer(r"(?:^\|.*\n?)+", FENCE.sub("", text), re.M)]
+
+
+@pytest.mark.parametrize("table", TABLES, ids=lambda t: t.header[0] + " / " + t.header[1])
+def test_tables_are_rendered_from_their_json(table):
+    # The rows exactly; the caption (wrapped as you like) right above them.
+    text = read(table.doc)
+    assert table.rows_text() in text and _flat(table.text()) in _flat(text), \
+        f"{table.doc} must hold (the caption wrapped as you like):\n\n{table.text()}"
+
+
+def _flat(text: str) -> str:
+    """Whitespace runs as one space: a quoted sentence may be wrapped anywhere."""
+    return " ".join(text.split())
+
+
+@pytest.mark.parametrize("quote", QUOTES, ids=lambda q: q.template[:40])
+def test_quoted_figures_are_their_json(quote):
+    assert _flat(quote.text()) in _flat(read(quote.doc)), f"{quote.doc} must say (wrapped as you like): {quote.text()}"
+
+
+def test_benchmarks_doc_has_no_other_table():
+    rendered = [t.rows_text() for t in TABLES if t.doc == BENCHMARKS_DOC]
+    extra = [t for t in _tables_of(read(BENCHMARKS_DOC)) if t.rstrip("\n") not in rendered]
+    assert not extra, f"tables in {BENCHMARKS_DOC} not rendered by this test: {extra}"
+
+
+FIGURE_WITH_UNIT = re.compile(r"(?<![\w.])\d[\d,]*(?:\.\d+)?(?:e-?\d+)? ?(?:ms|s|GB|MB|TB|m/s|m|x|%|pairs/s)(?!\w)")
+
+
+def test_benchmarks_doc_has_no_other_figure():
+    text = FENCE.sub("", read(BENCHMARKS_DOC))
+    for table in TABLES:
+        text = text.replace(table.rows_text(), "")
+    text = _flat(text)
+    for quote in QUOTES + tuple(t.caption for t in TABLES):
+        text = text.replace(_flat(quote.text()), "")
+    text = CODE_SPAN.sub("", text)
+    assert FIGURE_WITH_UNIT.findall(text) == [], "figures in docs/benchmarks.md that no JSON backs"
+
+
+# --- The walk through one training step (docs/architecture.md) -----------------------------------------------------
+
+STEP_FUNCTIONS = (  # (file, function or Class.method): from the command line to the optimizer's update
+    ("tools/train.py", "main"),
+    ("ff3d_tf/training/trainer.py", "Trainer.__init__"),
+    ("ff3d_tf/training/trainer.py", "Trainer.train"),
+    ("ff3d_tf/training/trainer.py", "Trainer._input_iterator"),
+    ("ff3d_tf/training/trainer.py", "training_dataset"),
+    ("ff3d_tf/training/trainer.py", "Trainer._run_step"),
+    ("ff3d_tf/training/trainer.py", "Trainer.step"),
+    ("ff3d_tf/training/trainer.py", "Trainer._replica_step"),
+    ("ff3d_tf/training/trainer.py", "Trainer._state_variables"),
+    ("ff3d_tf/model/step.py", "train_step_fn"),
+    ("ff3d_tf/model/step.py", "loss_and_grads_fn"),
+    ("ff3d_tf/model/forward.py", "model_inputs"),
+    ("ff3d_tf/model/fastflow3d.py", "FastFlow3D.call"),
+    ("ff3d_tf/model/losses.py", "batch_flow_loss"),
+    ("ff3d_tf/model/losses.py", "per_sample_flow_loss"),
+    ("ff3d_tf/model/losses.py", "point_weights"),
+    ("ff3d_tf/training/trainer.py", "_over_replicas"),
+    ("ff3d_tf/model/step.py", "adam_update"),
+    ("ff3d_tf/model/step.py", "learning_rate_schedule"),
+    ("ff3d_tf/model/step.py", "adam_apply"),
+    ("ff3d_tf/training/trainer.py", "Trainer._assign_step_result"),
+)
+
+
+def function_lines(rel: str, qualname: str) -> int:
+    scope, node = _top_level_names(module_tree(rel).body), None
+    for name in qualname.split("."):
+        node = scope[name]
+        scope = _top_level_names(node.body) if isinstance(node, ast.ClassDef) else {}
+    return node.end_lineno - node.lineno + 1
+
+
+def step_walk_sentence() -> str:
+    files = {f for f, _ in STEP_FUNCTIONS}
+    lines = sum(function_lines(f, q) for f, q in STEP_FUNCTIONS)
+    return f"{len(STEP_FUNCTIONS)} functions in {len(files)} files, {lines} lines"
+
+
+def test_the_step_walk_names_its_functions_and_counts_them():
+    text = read("docs/architecture.md")
+    missing = [f"{f}: {q}" for f, q in STEP_FUNCTIONS
+               if not re.search(r"`(%s|%s)[`(]" % (re.escape(q), re.escape(q.split(".")[-1])), text)]
+    assert not missing, f"docs/architecture.md does not name {missing}"
+    assert _flat(step_walk_sentence()) in _flat(text), f"docs/architecture.md must say: {step_walk_sentence()}"
+
+
+if __name__ == "__main__":
+    for item in TABLES + QUOTES:
+        print(f"--- {item.doc}\n{item.text()}\n")
+    print(f"--- docs/architecture.md\n{step_walk_sentence()}")
