@@ -36,7 +36,7 @@ demo: install
 clean:
 	rm -rf demo_out .pytest_cache
 
-# Bazel (README "Bazel"): Debian's bazel-bootstrap (Bazel 4.2.3) runs the tests offline on the same .venv, one target
+# Bazel (docs/bazel.md): Debian's bazel-bootstrap (Bazel 4.2.3) runs the tests offline on the same .venv, one target
 # per test file; tests marked slow stay out (--test_tag_filters in .bazelrc). BAZEL_STARTUP takes startup options
 # (e.g. --output_base=DIR), BAZEL_FLAGS test options, BAZEL_TARGETS the target patterns.
 BAZEL ?= bazel

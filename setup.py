@@ -21,7 +21,7 @@ setup(
         "dev": ["pytest>=8", "pytest-xdist==3.8.0"],  # make test runs test files on 2 processes
         # Portable XLA export (tools/export_xla.py) and its TensorFlow-free runner (tools/run_xla.py). jax 0.10.2 is
         # the newest that supports Python 3.11 and resolves against the TF 2.21 pins; a runner machine may have a
-        # newer jax (artifacts stay loadable for 6 months of jaxlib releases, README "GPU and portable XLA export").
+        # newer jax (artifacts stay loadable for 6 months of jaxlib releases, docs/deployment.md).
         "xla": ["jax==0.10.2", "jaxlib==0.10.2", "flatbuffers>=24.3.25"],
         # ONNX export for TensorRT and ONNX Runtime (tools/export_onnx.py) and its check against TensorFlow.
         "onnx": ["tf2onnx==1.17.0", "onnx==1.19.1", "onnxruntime==1.31.1"],

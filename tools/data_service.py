@@ -6,7 +6,7 @@ python tools/train.py ... --data_service_address grpc://host:5050
 
 Workers need the segment files at the same paths as the trainers (a shared filesystem or gs://). Each role serves
 until it is stopped (Ctrl-C / SIGTERM: it stops its server and exits with status 0). With --work_dir the dispatcher
-is fault-tolerant: restart it with the same --port and --work_dir and training goes on (see README, "Faults and
+is fault-tolerant: restart it with the same --port and --work_dir and training goes on (docs/training.md, "Faults and
 preemption"); a killed worker can be restarted at any time (any port), and training goes on meanwhile.
 """
 import argparse

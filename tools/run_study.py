@@ -3,7 +3,7 @@
 python tools/run_study.py --study point_density --config configs/synthetic_cpu.yaml --train_dir D --val_dir V \
     --out_dir studies/ [--values 0.1,0.5,1] [--set train.num_steps=400 ...]
 
-Studies (ff3d_tf/studies.py): data_size, point_density, ground_removal, class_ablation, ego_motion. Each variant trains
+Studies (ff3d_tf/training/studies.py): data_size, point_density, ground_removal, class_ablation, ego_motion. Each variant trains
 in <out_dir>/<study>/<variant>/model (resumes) and is evaluated into .../eval (kept once written: delete it to
 re-evaluate); every config is checked before any work starts. Writes <out_dir>/<study>/<study>.{json,md,png}.
 """

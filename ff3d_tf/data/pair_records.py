@@ -76,7 +76,7 @@ class Manifest:
     # False: raw LiDAR without flow labels (flow 0, class -1 everywhere): input for tools/pseudo_label.py only.
     human_labels: bool = True
     # Argoverse 2 records for the 2024 challenge pair each sweep (t0) with the NEXT sweep (as "t-1"): the model's
-    # flow is then minus the challenge's flow per 0.1 s (README "Argoverse 2"). WOD records are always "previous".
+    # flow is then minus the challenge's flow per 0.1 s (docs/datasets.md, "Argoverse 2"). WOD records are always "previous".
     partner: str = "previous"
     written_by: str = ""  # the writer's command line or description
 
