@@ -13,6 +13,11 @@ A checkpoint is the prefix `DIR/ckpt-N` of `tf.train.CheckpointManager`: `ckpt-N
 `restore_newest_intact` is the resume policy of training: the newest intact checkpoint wins; newer damaged ones are
 moved to `DIR/damaged/` (never deleted) with a REASON.txt; if checkpoints exist but none is intact it stops with
 `CheckpointError` and moves nothing, so a rerun can never restart a long run from step 0 over its checkpoints.
+
+A checkpoint knows its config: training writes the resolved config as `model_dir/config.yaml` (`CONFIG_NAME`) beside
+`model_dir/checkpoints/`, and `saved_config` finds it from a model_dir, its checkpoints folder, a checkpoint prefix or
+a SavedModel directory that holds one. The tools load it when given no `--config` (`tools/_common.load`); a mismatch
+error names it.
 """
 from __future__ import annotations
 
@@ -28,6 +33,8 @@ from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.model import build_model
 
 DAMAGED_DIR = "damaged"
+CHECKPOINTS_DIR = "checkpoints"  # model_dir/checkpoints/ckpt-N
+CONFIG_NAME = "config.yaml"  # the resolved config saved with a model (model_dir/config.yaml)
 _OBJECT_GRAPH_KEY = "_CHECKPOINTABLE_OBJECT_GRAPH"
 _FILE_RE = re.compile(r"^(?P<prefix>.+-(?P<number>\d+))\.(?:index|data-\d{5}-of-(?P<shards>\d{5}))$")
 
@@ -35,9 +42,10 @@ _FILE_RE = re.compile(r"^(?P<prefix>.+-(?P<number>\d+))\.(?:index|data-\d{5}-of-
 class CheckpointError(RuntimeError):
     """A checkpoint that cannot be restored into the given objects; the message names it and says why."""
 
-    def __init__(self, prefix: str, reason: str):
+    def __init__(self, prefix: str, reason: str, mismatch: bool = False):
         super().__init__(f"checkpoint {prefix} is unusable: {reason}")
-        self.prefix, self.reason = prefix, reason
+        # mismatch: intact but of another model or config (a variable missing, or of another shape or dtype)
+        self.prefix, self.reason, self.mismatch = prefix, reason, mismatch
 
 
 def list_checkpoints(checkpoint_dir: str) -> list[str]:
@@ -126,13 +134,14 @@ def verify_checkpoint(root, prefix: str) -> int:
     for path, variable in variables:
         key = keys.get(node_of.get(id(variable)))
         if key is None or key not in saved_shapes:
-            raise CheckpointError(prefix, f"variable {path} is not in it (a checkpoint of another model or config?)")
+            raise CheckpointError(prefix, f"variable {path} is not in it (a checkpoint of another model or config?)",
+                                  mismatch=True)
         want_shape, got_shape = tuple(variable.shape), tuple(saved_shapes[key])
         want_dtype, got_dtype = tf.as_dtype(variable.dtype), tf.as_dtype(saved_dtypes[key])
         if want_shape != got_shape or want_dtype != got_dtype:
             raise CheckpointError(prefix, f"variable {path} is {got_dtype.name}{list(got_shape)} in the checkpoint "
                                           f"but {want_dtype.name}{list(want_shape)} in this model (a checkpoint of "
-                                          f"another config?)")
+                                          f"another config?)", mismatch=True)
         try:
             reader.get_tensor(key)
         except Exception as e:  # truncated shard or checksum mismatch, whatever TF calls it
@@ -180,8 +189,9 @@ def newest_intact(root, checkpoint_dir: str, log_fn=print, move_damaged: bool = 
         return prefix
     if damaged:
         listing = "; ".join(f"{os.path.basename(e.prefix)}: {e.reason}" for e in damaged)
+        own = _own_config(checkpoint_dir) if any(e.mismatch for e in damaged) else ""
         raise CheckpointError(checkpoint_dir, f"none of its {len(damaged)} checkpoints is intact and fits this "
-                                              f"model ({listing}). "
+                                              f"model ({listing}{own}). "
                                               f"Nothing was moved or overwritten. To start from step 0 anyway, move "
                                               f"them out of {checkpoint_dir} or pass a new model_dir")
     return None
@@ -196,12 +206,37 @@ def restore_newest_intact(checkpoint: tf.train.Checkpoint, checkpoint_dir: str, 
     return prefix
 
 
+def saved_config(path: str) -> str | None:
+    """The config saved with a checkpoint: `CONFIG_NAME` in the folder `path` (a model_dir, a SavedModel directory) or
+    in the folder of the checkpoint prefix `path`, or, when that folder is a model_dir's `CHECKPOINTS_DIR`, in the
+    model_dir; None when there is none (or `path` does not exist)."""
+    gfile = tf.io.gfile
+    if gfile.exists(path + ".index"):  # a prefix (checked first: ram:// calls any prefix of a file a directory)
+        folder = os.path.dirname(path)
+    elif gfile.isdir(path):
+        folder = path.rstrip("/")
+    else:
+        return None
+    folders = [folder] + ([os.path.dirname(folder)] if os.path.basename(folder) == CHECKPOINTS_DIR else [])
+    for candidate in (os.path.join(f, CONFIG_NAME) for f in folders):
+        if gfile.exists(candidate) and not gfile.isdir(candidate):
+            return candidate
+    return None
+
+
+def _own_config(path: str) -> str:
+    """"; its own config is X (...)" for the error of a checkpoint that does not fit the model; "" without one."""
+    saved = saved_config(path)
+    return (f"; its own config is {saved} (the tools load it when given no --config; check --config and --set)"
+            if saved else "")
+
+
 def resolve_checkpoint(path: str) -> str:
     """A checkpoint prefix from a checkpoint prefix or a model_dir (its newest checkpoint, found from the files)."""
     if tf.io.gfile.exists(path + ".index"):
         return path  # a prefix (checked first: ram:// calls any prefix of a file a directory)
     if tf.io.gfile.isdir(path):
-        found = list_checkpoints(os.path.join(path, "checkpoints")) or list_checkpoints(path)
+        found = list_checkpoints(os.path.join(path, CHECKPOINTS_DIR)) or list_checkpoints(path)
         if not found:
             raise FileNotFoundError(f"no checkpoint under {path} (expected {path}/checkpoints/ckpt-N.index)")
         return found[0]
@@ -212,7 +247,8 @@ def restore_model(cfg: ExperimentConfig, checkpoint_path: str):
     """The model of `cfg` with the weights of a checkpoint prefix or a model_dir's newest checkpoint.
 
     The checkpoint is verified first (`ff3d_tf.checkpoints.verify_checkpoint`): a damaged one, or one of
-    another config, raises `CheckpointError` naming it, the reason and, for a model_dir, the newest intact one.
+    another config, raises `CheckpointError` naming it, the reason, the config saved with it when it is of another
+    config (`saved_config`) and, for a model_dir, the newest intact one.
     Nothing is moved: choosing another checkpoint is the caller's decision.
     """
     model = build_model(cfg)
@@ -221,14 +257,17 @@ def restore_model(cfg: ExperimentConfig, checkpoint_path: str):
     try:
         verify_checkpoint(root, prefix)
     except CheckpointError as e:
+        reason = e.reason + (_own_config(checkpoint_path) if e.mismatch else "")
         if prefix != checkpoint_path:  # a model_dir was given: say which of its checkpoints would work
             try:
                 intact = newest_intact(root, os.path.dirname(prefix), log_fn=lambda _: None, move_damaged=False)
             except CheckpointError:
                 intact = None
             if intact is not None:
-                raise CheckpointError(prefix, f"{e.reason}; the newest intact checkpoint is {intact} (pass it as "
+                raise CheckpointError(prefix, f"{reason}; the newest intact checkpoint is {intact} (pass it as "
                                               f"the checkpoint, or rerun training to resume from it)") from e
+        if reason != e.reason:
+            raise CheckpointError(prefix, reason, mismatch=True) from e
         raise
     root.restore(prefix).expect_partial()
     return model

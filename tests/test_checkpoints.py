@@ -161,3 +161,35 @@ def test_export_tool_reports_damaged_checkpoint(model_dir, tmp_path):
         in out.stderr, out.stderr[-2000:]
     assert "Traceback" not in out.stderr
     assert not (tmp_path / "sm").exists()
+
+
+def test_saved_config_is_found_from_each_way_of_naming_a_model(tiny_config, model_dir, tmp_path):
+    assert checkpoints.saved_config(str(model_dir)) is None  # no config.yaml yet
+    saved = str(model_dir / checkpoints.CONFIG_NAME)
+    tiny_config.save(saved)
+    for given in (model_dir, model_dir / "checkpoints", _ckpt(model_dir, 2)):
+        assert checkpoints.saved_config(str(given)) == saved, given
+    # A model_dir holding its checkpoints directly; a SavedModel directory holding one; nothing for a missing path.
+    flat = tmp_path / "flat"
+    shutil.copytree(model_dir / "checkpoints", flat)
+    tiny_config.save(str(flat / "config.yaml"))
+    assert checkpoints.saved_config(str(flat / "ckpt-1")) == str(flat / "config.yaml")
+    assert checkpoints.saved_config(str(tmp_path / "missing")) is None
+
+
+def test_a_mismatch_names_the_models_own_config(tiny_config, model_dir):
+    saved = str(model_dir / checkpoints.CONFIG_NAME)
+    tiny_config.save(saved)
+    other = dataclasses.replace(tiny_config, model=dataclasses.replace(tiny_config.model, head_hidden_dim=16))
+    own = re.escape(f"its own config is {saved} (the tools load it when given no --config; check --config and --set)")
+    with pytest.raises(CheckpointError, match=r"model/head_y/kernel is float32\[40, 8\] in the checkpoint but "
+                                              r"float32\[40, 16\] in this model .*; " + own) as e:
+        restore_model(other, _ckpt(model_dir, 3))
+    assert e.value.mismatch
+    with pytest.raises(CheckpointError, match=r"none of its 3 checkpoints is intact and fits this model .*" + own):
+        _trainer(other, model_dir).train(num_steps=5)
+    # A damaged checkpoint is not one of another config: its error does not send the reader to a config.
+    _truncate(_data(_ckpt(model_dir, 3)))
+    with pytest.raises(CheckpointError) as e:
+        restore_model(tiny_config, _ckpt(model_dir, 3))
+    assert not e.value.mismatch and "own config" not in str(e.value)

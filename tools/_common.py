@@ -1,4 +1,5 @@
-"""Shared flag handling of the tools: --config plus repeatable --set key=value, logging, error exit."""
+"""Shared flag handling of the tools: --config (else the config saved with the model a tool is given) plus repeatable
+--set key=value, logging, error exit."""
 from __future__ import annotations
 
 import argparse
@@ -10,21 +11,80 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 
+# The flags by which a tool names a model_dir, a checkpoint prefix or a SavedModel directory: a tool given one of them
+# and no --config loads the config saved with it (`load`).
+CHECKPOINT_FLAGS = ("checkpoint", "model_dir")
+
+
+class _ConfigFlag(argparse.Action):
+    """--config, remembering that the command line gave it (`config_given`): a default does not count."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values)
+        namespace.config_given = True
+
+
 def parser(description: str, config_default: str | None = None) -> argparse.ArgumentParser:
+    """--config and --set. `config_default` is the config of a tool run without --config, unless the tool is given a
+    model (see `load`)."""
     p = argparse.ArgumentParser(description=description)
-    p.add_argument("--config", default=config_default, help="YAML file of overrides (configs/*.yaml)")
+    p.add_argument("--config", default=config_default, action=_ConfigFlag,
+                   help="YAML file of overrides (configs/*.yaml); default: the config saved with the model the tool "
+                        "is given (--checkpoint, --model_dir), if any, else "
+                        f"{config_default or 'the built-in defaults'}")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override one config value, e.g. --set train.learning_rate=1e-4 (repeatable)")
+    p.set_defaults(config_given=False)
     return p
 
 
+def saved_config(args) -> tuple[str, str] | None:
+    """(the config file saved with the model, the flag's value) of the first of `CHECKPOINT_FLAGS` that `args` holds
+    and whose model has one (`ff3d_tf.checkpoints.saved_config`); None when there is none."""
+    for flag in CHECKPOINT_FLAGS:
+        path = getattr(args, flag, None)
+        if path:
+            from ff3d_tf.checkpoints import saved_config as find
+            found = find(path)
+            if found:
+                return found, path
+    return None
+
+
 def load(args):
-    from ff3d_tf.config import ConfigError, load_config
+    """The config of a tool: --config (when the command line gives it, even "": the built-in defaults) else the config
+    saved with the model named by --checkpoint or --model_dir (one line says which file) else the parser's default;
+    then every --set. `args.config` is set to the file used (a tool that hands it on hands on the same)."""
+    from ff3d_tf.config import ConfigError
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    if not getattr(args, "config_given", True):  # a namespace not made by `parser`: its config is as given
+        found = saved_config(args)
+        if found:
+            args.config, model = found
+            print(f"config: {args.config}, the one saved with {model} (--config chooses another)", flush=True)
     try:
-        return load_config(args.config, args.set)
+        return _load_config(args.config, args.set)
     except ConfigError as e:
         sys.exit(f"config error: {e}")
+
+
+def _load_config(path: str | None, overrides):
+    """`load_config` of a local file, or of a copy of a remote one (gs://, ram://: a model_dir may be either)."""
+    from ff3d_tf.config import ConfigError, load_config
+    if not path or "://" not in path:
+        return load_config(path, overrides)
+    import tempfile
+    import tensorflow as tf
+    with tempfile.TemporaryDirectory() as folder:
+        local = os.path.join(folder, os.path.basename(path))
+        try:
+            tf.io.gfile.copy(path, local)
+        except (tf.errors.OpError, OSError) as e:
+            raise ConfigError(f"cannot read config {path}: {e}") from e
+        try:
+            return load_config(local, overrides)
+        except ConfigError as e:
+            raise ConfigError(str(e).replace(local, path)) from None
 
 
 def run(main) -> None:

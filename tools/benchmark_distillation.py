@@ -9,7 +9,8 @@ python tools/benchmark_distillation.py [--out_dir distillation_out] [--json benc
 Stages (each one of the project's tools as a subprocess, as `tools/demo.py` runs them; its output streams through):
 1. synthetic WOD segments, training and held-out (`tools/make_synthetic_data.py`, different seeds);
 2. pair records of both (`tools/write_pair_records.py`, with the human labels);
-3. NSFP pseudo-labels of the training records (`tools/pseudo_label.py`; the --nsfp_* flags are its options);
+3. NSFP pseudo-labels of the training records (`tools/pseudo_label.py`; the --nsfp_* flags set its config's nsfp
+   section: max_iterations, patience, grid_cell_m, crop_xy_half_extent_m, remove_ground_below_z_m, seed);
 4. FastFlow3D trained twice on the pseudo-labelled records, same config, seed, steps and input order, once with
    `data.labels=human` and once with `data.labels=pseudo` (ZeroFlow's speed-scaled loss) (`tools/train.py`);
 5. both evaluated on the held-out records against their human labels, beside zero flow (`tools/eval.py`);
@@ -17,24 +18,23 @@ Stages (each one of the project's tools as a subprocess, as `tools/demo.py` runs
    training reads: the grid crop), and everything written to --json: EPE on moving / stationary points per class,
    the three-way EPE (foreground dynamic), the eval's full tables, the options, steps and timings.
 
-Resumable: a finished stage leaves `OUT/stages/<stage>.json` (its command, a hash of the project's code and
-configs, and its seconds); a rerun with the same command on the same code skips it (its recorded seconds stay in the
-JSON) and reruns every later stage; an interrupted stage resumes (the tools skip finished outputs, training restarts
-from its checkpoint). A stage whose command or code changed (other NSFP options, another step count, a tool's new
-defaults) starts again from nothing: its outputs are removed first.
+Resumable (`ff3d_tf.stages`, as `tools/demo.py`): a finished stage leaves `OUT/stages/<stage>.json` (its command, a
+hash of the project's code and configs, its outputs' files and sizes, and its seconds); a rerun with the same command
+on the same code, its outputs untouched, skips it (its recorded seconds stay in the JSON) and reruns every later stage;
+an interrupted stage resumes (the tools skip finished outputs, training restarts from its checkpoint). A stage whose
+command or code changed (other NSFP options, another step count, a tool's new defaults) starts again from nothing:
+its outputs are removed first.
 """
 import argparse
-import glob
-import hashlib
 import json
 import math
 import os
-import shutil
-import subprocess
 import sys
 import time
 
 import _common
+
+from ff3d_tf.stages import StageError, Stages
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -44,77 +44,8 @@ SUMMARY_KEYS = tuple(f"{c}/{s}/{stat}" for c in CLASSES for s in ("moving", "sta
                      for stat in ("mean_l2_mps", "count")) + (
     "three_way/fg_dynamic_epe_m", "three_way/fg_static_epe_m", "three_way/bg_static_epe_m", "three_way/mean_epe_m",
     "bucketed/mean_dynamic", "bucketed/mean_static")
-
-
-def code_fingerprint() -> str:
-    """SHA-256 of the package's and tools' Python files and the configs: what a stage's outputs depend on besides
-    its command line (a tool's defaults live in them)."""
-    digest = hashlib.sha256()
-    patterns = ("ff3d_tf/**/*.py", "tools/*.py", "configs/*.yaml")
-    for path in sorted(p for pattern in patterns for p in glob.glob(os.path.join(ROOT, pattern), recursive=True)):
-        digest.update(os.path.relpath(path, ROOT).encode() + b"\0")
-        with open(path, "rb") as f:
-            digest.update(f.read() + b"\0")
-    return digest.hexdigest()
-
-
-class Stages:
-    """Runs stages as subprocesses; skips one whose record holds the same command and code (and every stage before
-    the first that runs); keeps each stage's seconds."""
-
-    def __init__(self, out_dir: str, total: int):
-        self.record_dir = os.path.join(out_dir, "stages")
-        self.code = code_fingerprint()
-        self.ran, self.done, self.total, self.t0 = False, 0, total, time.time()
-        self.seconds, self.skipped = {}, []
-
-    def _record(self, name: str) -> str:
-        return os.path.join(self.record_dir, name + ".json")
-
-    def run(self, name: str, args: list[str], outputs: list[str]) -> None:
-        """Runs `args` (a tool and its flags) unless complete. `outputs` (directories) are removed first when a
-        run of this stage with another command or code left them: the tools skip or resume from what exists, which
-        would mix, e.g., pseudo-labels of other NSFP options or a model of another step count into this run."""
-        self.done += 1
-        head = f"[{self.done}/{self.total}] {name}"
-        key = {"command": args, "code": self.code}
-        if not self.ran:
-            try:
-                with open(self._record(name)) as f:
-                    record = json.load(f)
-            except (OSError, ValueError):
-                record = {}
-            if {k: record.get(k) for k in key} == key:
-                self.seconds[name] = record["seconds"]
-                self.skipped.append(name)
-                print(f"=== {head}: complete ({record['seconds']:.0f} s when run), skipped", flush=True)
-                return
-        self.ran = True
-        started = os.path.join(self.record_dir, name + ".started.json")
-        try:
-            with open(started) as f:
-                previous = json.load(f)
-        except (OSError, ValueError):
-            previous = {}
-        if {k: previous.get(k) for k in key} != key:
-            for path in outputs:
-                if os.path.isdir(path):
-                    print(f"=== {head}: removing {path} (written by another command or code)", flush=True)
-                    shutil.rmtree(path)
-        os.makedirs(self.record_dir, exist_ok=True)
-        with open(started, "w") as f:
-            json.dump(key, f)
-        print(f"\n=== {head} (elapsed {time.time() - self.t0:.0f} s): {' '.join(args)}", flush=True)
-        t = time.time()
-        code = subprocess.call([sys.executable] + args, cwd=ROOT)  # an interrupted stage resumes on a rerun
-        if code != 0:
-            sys.exit(f"benchmark_distillation: stage {name} stopped (exit status {code}); run the same command "
-                     "again to resume")
-        self.seconds[name] = time.time() - t
-        with open(self._record(name) + ".partial", "w") as f:
-            json.dump({**key, "seconds": self.seconds[name]}, f)
-        os.replace(self._record(name) + ".partial", self._record(name))
-        print(f"=== {head} done in {self.seconds[name]:.0f} s", flush=True)
+PLAN = ("generate_train", "generate_eval", "records_train", "records_eval", "pseudo_label") + tuple(
+    f"{stage}_{labels}" for stage in ("train", "eval") for labels in MODELS)
 
 
 def _summary(metrics: dict) -> dict:
@@ -151,6 +82,38 @@ def _clean(value):
     return value
 
 
+def _run_stages(args, stages: Stages, out: str, config: list[str]) -> None:
+    data, records = f"{out}/data", f"{out}/records"
+    for split, count, seed in (("train", args.train_segments, 100), ("eval", args.eval_segments, 900)):
+        stages.run(f"generate_{split}", [os.path.join(HERE, "make_synthetic_data.py"), "--out_dir", f"{data}/{split}",
+                                         "--num_segments", str(count), "--frames_per_segment",
+                                         str(args.frames_per_segment), "--seed", str(seed), "--lidar_scale",
+                                         str(args.lidar_scale)], [f"{data}/{split}"])
+    for split in ("train", "eval"):
+        stages.run(f"records_{split}", [os.path.join(HERE, "write_pair_records.py"), "--source", "wod", "--config",
+                                        args.config, "--input", f"{data}/{split}", "--out_dir",
+                                        f"{records}/{split}"], [f"{records}/{split}"])
+    # The job's options are the config's nsfp section (tools/pseudo_label.py takes them as --set nsfp.KEY=VALUE).
+    nsfp_sets = {"max_iterations": args.nsfp_max_iterations, "patience": args.nsfp_patience,
+                 "grid_cell_m": args.nsfp_grid_cell_m, "crop_xy_half_extent_m": args.nsfp_crop_m,
+                 "seed": args.nsfp_seed}
+    if args.nsfp_ground_below_z_m >= 0:
+        nsfp_sets["remove_ground_below_z_m"] = args.nsfp_ground_below_z_m
+    nsfp = [a for key, value in nsfp_sets.items() for a in ("--set", f"nsfp.{key}={value}")] + args.nsfp_arg
+    stages.run("pseudo_label", [os.path.join(HERE, "pseudo_label.py"), "--input", f"{records}/train", "--out_dir",
+                                f"{records}/train_pseudo", *nsfp], [f"{records}/train_pseudo"])
+    # Both models read the same pseudo-labelled records (which keep the human labels beside the pseudo ones): same
+    # files, same shuffle, same seed; only data.labels differs.
+    for labels in MODELS:
+        stages.run(f"train_{labels}", [os.path.join(HERE, "train.py"), *config, "--set", f"data.labels={labels}",
+                                       "--data_dir", f"{records}/train_pseudo", "--model_dir",
+                                       f"{out}/model_{labels}"], [f"{out}/model_{labels}"])
+    for labels in MODELS:
+        stages.run(f"eval_{labels}", [os.path.join(HERE, "eval.py"), *config, "--data_dir", f"{records}/eval",
+                                      "--checkpoint", f"{out}/model_{labels}", "--out_dir", f"{out}/eval_{labels}"],
+                   [f"{out}/eval_{labels}"])
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out_dir", default="distillation_out", help="segments, records, models, metrics")
@@ -172,46 +135,24 @@ def main():
     p.add_argument("--nsfp_crop_m", type=float, default=32.0, help="NSFP fits |x|, |y| <= this; the rest gets 0")
     p.add_argument("--nsfp_seed", type=int, default=0)
     p.add_argument("--nsfp_arg", action="append", default=[], metavar="ARG",
-                   help="one more argument for tools/pseudo_label.py (repeatable; write --nsfp_arg=--flag=value)")
+                   help="one more argument for tools/pseudo_label.py (repeatable; write "
+                        "--nsfp_arg=--set=nsfp.KEY=VALUE)")
     args = p.parse_args()
     out = os.path.abspath(args.out_dir)
     json_path = os.path.abspath(args.json)
     t0 = time.time()
-    stages = Stages(out, total=9)
     # point_bucket_base 8192: the default lidar_scale's ~23K points a cloud padded to a near bucket (the CPU config's
     # 65536 would triple the work); --set overrides it.
     sets = ["data.point_bucket_base=8192", "data.source=pair_records", f"train.num_steps={args.steps}",
             f"train.seed={args.seed}", "train.eval_every_steps=0"] + list(args.set)
     config = ["--config", args.config] + [a for s in sets for a in ("--set", s)]
-    data, records = f"{out}/data", f"{out}/records"
+    records = f"{out}/records"
 
-    for split, count, seed in (("train", args.train_segments, 100), ("eval", args.eval_segments, 900)):
-        stages.run(f"generate_{split}", [os.path.join(HERE, "make_synthetic_data.py"), "--out_dir", f"{data}/{split}",
-                                         "--num_segments", str(count), "--frames_per_segment",
-                                         str(args.frames_per_segment), "--seed", str(seed), "--lidar_scale",
-                                         str(args.lidar_scale)], [f"{data}/{split}"])
-    for split in ("train", "eval"):
-        stages.run(f"records_{split}", [os.path.join(HERE, "write_pair_records.py"), "--source", "wod", "--config",
-                                        args.config, "--input", f"{data}/{split}", "--out_dir",
-                                        f"{records}/{split}"], [f"{records}/{split}"])
-    nsfp = ["--max_iterations", str(args.nsfp_max_iterations), "--patience", str(args.nsfp_patience),
-            "--grid_cell_m", str(args.nsfp_grid_cell_m), "--crop_m", str(args.nsfp_crop_m),
-            "--seed", str(args.nsfp_seed)]
-    if args.nsfp_ground_below_z_m >= 0:
-        nsfp += ["--ground_below_z_m", str(args.nsfp_ground_below_z_m)]
-    nsfp += args.nsfp_arg
-    stages.run("pseudo_label", [os.path.join(HERE, "pseudo_label.py"), "--input", f"{records}/train", "--out_dir",
-                                f"{records}/train_pseudo", *nsfp], [f"{records}/train_pseudo"])
-    # Both models read the same pseudo-labelled records (which keep the human labels beside the pseudo ones): same
-    # files, same shuffle, same seed; only data.labels differs.
-    for labels in MODELS:
-        stages.run(f"train_{labels}", [os.path.join(HERE, "train.py"), *config, "--set", f"data.labels={labels}",
-                                       "--data_dir", f"{records}/train_pseudo", "--model_dir",
-                                       f"{out}/model_{labels}"], [f"{out}/model_{labels}"])
-    for labels in MODELS:
-        stages.run(f"eval_{labels}", [os.path.join(HERE, "eval.py"), *config, "--data_dir", f"{records}/eval",
-                                      "--checkpoint", f"{out}/model_{labels}", "--out_dir", f"{out}/eval_{labels}"],
-                   [f"{out}/eval_{labels}"])
+    stages = Stages(f"{out}/stages", PLAN, cwd=ROOT)
+    try:
+        _run_stages(args, stages, out, config)
+    except StageError as e:
+        sys.exit(f"benchmark_distillation: {e}")
 
     print("\n=== scoring the pseudo-labels against the human labels of the training records", flush=True)
     from ff3d_tf.config import load_config
@@ -274,8 +215,8 @@ def main():
                      "grid_cell_m": args.nsfp_grid_cell_m, "crop_m": args.nsfp_crop_m,
                      "ground_below_z_m": args.nsfp_ground_below_z_m if args.nsfp_ground_below_z_m >= 0 else None,
                      "seed": args.nsfp_seed, "more_pseudo_label_args": args.nsfp_arg,
-                     "other": "tools/pseudo_label.py's defaults (the pseudo-labelled records' manifest, written_by, "
-                              "lists the fit's options)"},
+                     "other": "the config's nsfp defaults (the pseudo-labelled records' config.yaml holds the "
+                              "job's whole nsfp section)"},
         },
         "nsfp_job": {**nsfp_counts, "seconds_per_fitted_pair": nsfp_counts.get("nsfp_seconds", 0) / fitted,
                      "iterations_per_fitted_pair": nsfp_counts.get("nsfp_iterations", 0) / fitted},

@@ -86,6 +86,7 @@ def test_json_structure_and_finite_figures(run):
     for stage in ("generate_train", "generate_eval", "records_train", "records_eval", "pseudo_label", "train_human",
                   "train_pseudo", "eval_human", "eval_pseudo"):
         assert result["timings_s"][stage] > 0, stage
+    assert "=== [9/9] eval_pseudo done in" in stdout
     assert "pseudo-trained beats zero flow on moving points" in stdout
 
 
@@ -133,27 +134,26 @@ def test_pseudo_label_epe_is_their_distance_to_the_human_labels(run):
 
 def test_a_stage_reruns_when_its_command_or_the_code_changed(tmp_path, monkeypatch, capsys):
     """A finished stage is skipped only for the same command on the same code: a tool whose defaults changed
-    (same command line) reruns it, and its outputs are removed first."""
+    (same command line) reruns it, and its outputs are removed first. (The tool's runner is `ff3d_tf.stages`; its
+    other rules: tests/test_stages.py.)"""
     monkeypatch.syspath_prepend(os.path.join(ROOT, "tools"))
     import benchmark_distillation as tool
+    from ff3d_tf import stages
     output = tmp_path / "output"
     marker = tmp_path / "runs.txt"
-    args = ["-c", f"open({str(marker)!r}, 'a').write('x')"]
+    args = ["-c", f"import os; os.makedirs({str(output)!r}, exist_ok=True); open({str(marker)!r}, 'a').write('x')"]
 
     def run_stage(code=None, command=args):
-        stages = tool.Stages(str(tmp_path), total=1)
-        if code is not None:
-            stages.code = code
-        output.mkdir(exist_ok=True)
-        stages.run("stage", command, [str(output)])
-        return stages
+        job = tool.Stages(str(tmp_path / "stages"), tool.PLAN[:1], code=code)
+        job.run(tool.PLAN[0], command, [str(output)])
+        return job
 
     assert run_stage().skipped == [] and marker.read_text() == "x"
-    assert run_stage().skipped == ["stage"] and marker.read_text() == "x"  # same command, same code: skipped
-    (output / "stale").write_text("")
+    assert run_stage().skipped == [tool.PLAN[0]] and marker.read_text() == "x"  # same command, same code: skipped
     capsys.readouterr()
+    (output / "stale").write_text("")
     assert run_stage(code="other").skipped == [] and marker.read_text() == "xx"
     assert "removing" in capsys.readouterr().out and not (output / "stale").exists()
-    assert run_stage(code="other").skipped == ["stage"]
+    assert run_stage(code="other").skipped == [tool.PLAN[0]]
     assert run_stage(code="other", command=args + ["again"]).skipped == [] and marker.read_text() == "xxx"
-    assert len(tool.code_fingerprint()) == 64
+    assert tool.Stages is stages.Stages and len(stages.code_fingerprint()) == 64

@@ -59,17 +59,18 @@ def test_demo_interrupted_in_training_and_in_export_resumes_and_finishes(tmp_pat
 
     # 2. Rerun: finished stages skipped, training resumed; SIGKILL once the SavedModel is being written.
     code, text, seconds_2 = _demo(out, lambda lines: (out / "saved_model.partial").exists())
-    for stage in ("generate train", "generate val", "dataset statistics"):
-        assert f"=== {stage}: complete" in text, text[-3000:]
+    for k, stage in enumerate(("generate train", "generate val", "dataset statistics"), 1):
+        assert f"=== [{k}/7] {stage}: complete" in text, text[-3000:]
     assert "resumed from" in text and f"step {NUM_STEPS}/{NUM_STEPS}" in text, text[-3000:]
-    assert "=== evaluate done" in text and not (out / "saved_model").exists()
+    assert "=== [5/7] evaluate done in" in text and not (out / "saved_model").exists()
+    assert "s left)" in text  # the time left, estimated from the stages' records
 
     # 3. Rerun: everything up to the export skipped, the half-written export redone, the demo finishes.
     code, text, seconds_3 = _demo(out)
     assert code == 0, text[-3000:]
-    for stage in ("generate train", "generate val", "dataset statistics", "train", "evaluate"):
-        assert f"=== {stage}: complete" in text, text[-3000:]
-    assert "demo finished" in text and "=== export done" in text and "=== predict done" in text
+    for k, stage in enumerate(("generate train", "generate val", "dataset statistics", "train", "evaluate"), 1):
+        assert f"=== [{k}/7] {stage}: complete" in text, text[-3000:]
+    assert "demo finished" in text and "=== [6/7] export done" in text and "=== [7/7] predict done" in text
     assert (out / "saved_model" / "saved_model.pb").exists() and not (out / "saved_model.partial").exists()
     assert (out / "predictions" / "frame_0000_bev.png").stat().st_size > 1000
     assert tf.train.latest_checkpoint(str(out / "model" / "checkpoints")).endswith(f"ckpt-{NUM_STEPS}")
