@@ -636,9 +636,26 @@ SOAK_TABLE = Table(
                 (_soak(mode, kind, "resume_s_median"), _soak(mode, kind, "resume_s_max"))),
            _soak(mode, kind, "steps_lost_max")) for mode, kind in _SOAK_KINDS))
 
+# -- TensorFlow's oneDNN operations on an AVX2-only CPU (benchmark_onednn.py)
+_DNN = "cpu_onednn_avx2.json"
+
+
+def _dnn(cap, onednn, key):
+    return _ms(_DNN, f"summary/{cap}_onednn_{onednn}/{key}")
+
+
+ONEDNN_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_onednn.py`, `{}`, {} points, batch 1, medians over {} rounds, {} ({} cores):",
+             (V(_DNN, "config"), V(_DNN, "points", "{:,}"), V(_DNN, "rounds"), V(_DNN, "cpu/model_name"),
+              V(_DNN, "cpu/cpu_count"))),
+    ("ISA", "oneDNN", "training step", "forward"), "llrr",
+    tuple((label, onednn_label, _dnn(cap, onednn, "train_step_ms"), _dnn(cap, onednn, "forward_ms"))
+          for cap, label in (("avx2", "capped to AVX2 (as on AMD Zen 3)"), ("none", "the CPU's own"))
+          for onednn, onednn_label in (("0", "off"), ("1", "on"))))
+
 TABLES = (LATENCY_TABLE, BF16_TABLE, MEMORY_TABLE, ONNX_TABLE, GPU_FORWARD_TABLE, GPU_TRAIN_TABLE, INPUT_TABLE,
           AV2_INPUT_TABLE, TRAINING_INPUT_TABLE, SIZING_TABLE, NSFP_SPEED_TABLE, NSFP_QUALITY_TABLE, DISTILLATION_TABLE,
-          SOAK_TABLE)
+          SOAK_TABLE, ONEDNN_TABLE)
 
 _1M = "latency_cpu_1m.json"
 _AMD_DIFF = "summary/flow_difference_bfloat16_vs_float32_mps"
@@ -656,6 +673,8 @@ def _gpu_ref(precision, fmt):
 
 
 QUOTES = (
+    Quote(B, "oneDNN makes the training step {} faster than Eigen's kernels",
+          (V(_DNN, "summary/avx2_onednn_speedup/train_step_ms", "{:.1f}x"),)),
     Quote("README.md", "the model exactly as the paper's architecture table ({} parameters)",
           (V(_LAT, "params", "{:,}"),)),
     Quote(B, "Peak resident memory of a process that runs the forward on {} points, one compile mode per process "
