@@ -1,7 +1,8 @@
 """Portable XLA programs, whatever they compute: a TensorFlow function traced to pre-optimisation HLO, written as a
 serialised `jax.export` artifact (CPU and CUDA), and read back, checked and compiled with JAX alone.
 
-The model's forward and training step (`ff3d_tf.inference.xla_export` / `xla_artifact`) and NSFP's per-pair
+The model's forward (`ff3d_tf.inference.xla_export` / `xla_artifact`), its training step
+(`ff3d_tf.training.xla_step_export` / `xla_step_runner`) and NSFP's per-pair
 optimiser (`ff3d_tf.labels.nsfp_export` / `nsfp_program`) are exported through this module. Importing it imports
 neither TensorFlow nor JAX (each function imports what it needs): a TensorFlow-free runner (a GPU machine with JAX
 only) loads programs through it. Trace with `traced_hlo` (TensorFlow), write with `write_program`, then on any

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from ff3d_tf import bench
+from ff3d_tf import bench, xla_export_dir
 from ff3d_tf.inference import xla_artifact, xla_timing
+from ff3d_tf.training import xla_step_runner
 from ff3d_tf.schema import MODEL_INPUT_KEYS
 
 
@@ -158,14 +159,14 @@ def test_the_tensorflow_example_and_the_xla_runners_inputs_are_this_cloud(tiny_c
     manifest = {"grid": {"x_range_m": list(g.x_range_m), "y_range_m": list(g.y_range_m),
                          "z_range_m": list(g.z_range_m)}, "input_keys": list(MODEL_INPUT_KEYS)}
     entry = {"points": 700, "padded_points": 1024, "batch_size": 1}
-    got = xla_artifact.random_inputs(manifest, entry, np.random.default_rng(3))
+    got = xla_export_dir.random_inputs(manifest, entry, np.random.default_rng(3))
     for k, v in zip(MODEL_INPUT_KEYS, got):
         np.testing.assert_array_equal(v, want[k], err_msg=k)
 
 
 def test_bench_imports_no_tensorflow():
     # The modules are imported above too, so that the BUILD checker sees them as this test's dependencies.
-    modules = ", ".join(m.__name__ for m in (bench, xla_artifact, xla_timing))
+    modules = ", ".join(m.__name__ for m in (bench, xla_artifact, xla_timing, xla_step_runner, xla_export_dir))
     script = ("import sys\nfor name in ('tensorflow', 'keras', 'jax'):\n    sys.modules[name] = None\n"
               f"sys.path.insert(0, {ROOT!r})\nimport {modules}\n")
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)

@@ -110,7 +110,7 @@ def test_max_distance_crop_against_numpy():
 
 def test_evaluation_reports_crop(tiny_segment, tiny_config):
     from ff3d_tf.data import pairs
-    from ff3d_tf.model.forward import Predictor
+    from ff3d_tf.predictor import Predictor
     from ff3d_tf.training.evaluation import evaluate
     from ff3d_tf.metrics import CROP_PREFIX, format_extra_tables
 

@@ -36,7 +36,8 @@ def main():
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--data_dir", required=True, help="Argoverse 2 pair records of the split")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--checkpoint", help="model_dir, checkpoint prefix, or SavedModel directory")
+    src.add_argument("--checkpoint", help="model_dir, checkpoint prefix, SavedModel directory, .onnx file or "
+                                          "portable XLA export directory")
     src.add_argument("--ground_truth", action="store_true", help="submit the records' labels (pipeline check)")
     p.add_argument("--out", required=True, help="the submission .zip")
     p.add_argument("--max_pairs", type=int, default=0)

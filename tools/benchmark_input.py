@@ -8,8 +8,8 @@ For each density (synthetic WOD segments: `wod` ~177K points per frame over five
 `synthetic` the embedded default's full size, about twice that), in a child process pinned to 1, 2, ... cores
 (CPU affinity, TensorFlow and tf.data thread pools of that size), after the first batch:
   stages   where a decoded pair's CPU time goes: TFRecord read alone, + in-graph decode of each frame (zlib, range
-           image to points, flow), + pairing (ego motion, studies), + batching and bucket padding (the trainer's
-           `training_dataset`), cumulative, as pairs/s (frames/s for the first two);
+           image to points, flow), + pairing (ego motion, studies), + batching and bucket padding (the training
+           input's `training_dataset`), cumulative, as pairs/s (frames/s for the first two);
   records  the same training input read from pair records (`tools/write_pair_records.py`), exact and compact.
 Disk: bytes per pair of each record kind, and the WOD training split's size at that rate (798 segments of ~198 pairs;
 Sun et al., CVPR 2020).
@@ -22,7 +22,7 @@ size), in the same pinned children:
                       parallel), as pairs/s; studies, shuffling and batching not included (they only lower it);
   write_<precision>   the records job (`labels.av2.write_log_records`, one log per worker, `cores` workers), pairs/s
                       and bytes per pair on disk;
-  records_<precision> the trainer's `training_dataset` reading those records (as `records` above), after untimed
+  records_<precision> the training input's `training_dataset` reading those records (as `records` above), after untimed
                       warm-up readings (a process's first ones run up to 2-3x slower: fresh memory).
 The result goes into `--out` as its key "av2"; the file's other keys are kept.
 """
@@ -84,7 +84,7 @@ def _child(args, cores: int, job: dict) -> dict:
     from ff3d_tf.config import replace_config
     from ff3d_tf.data import pairs
     from ff3d_tf.data.wod import wod_decode
-    from ff3d_tf.training.trainer import training_dataset
+    from ff3d_tf.training.input import training_dataset
     cfg = _common.load(args)
     options = _options(cores)
     batch = cfg.train.global_batch_size
@@ -115,7 +115,7 @@ def _child_av2(args, cores: int, job: dict) -> dict:
     from ff3d_tf.config import replace_config
     from ff3d_tf.data import pair_records
     from ff3d_tf.labels import av2
-    from ff3d_tf.training.trainer import training_dataset
+    from ff3d_tf.training.input import training_dataset
     cfg = _common.load(args)
     options, batch, logs = _options(cores), cfg.train.global_batch_size, job["av2_logs"]
     tasks = [(log, i) for log in logs for i in range(job["sweeps"] - 1)]

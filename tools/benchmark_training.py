@@ -5,7 +5,7 @@ python tools/benchmark_training.py --config configs/fastflow3d_waymo.yaml --out 
 
 Four measurements, on synthetic WOD segments at full size (the five lidars' real range-image sizes; made in a temporary
 directory unless --data_dir is given):
-  input         the training input pipeline alone (`trainer.training_dataset`: decode, pair, shuffle, batch, pad),
+  input         the training input pipeline alone (`input.training_dataset`: decode, pair, shuffle, batch, pad),
                 pairs/s after its first batch, in a child process pinned to 1, 2, ... cores (CPU affinity, TensorFlow
                 and tf.data thread pools of that size);
   decode_count  decodes per epoch of `pairs.pair_dataset`, counted by a counter inside the decoder: one per frame,
@@ -48,7 +48,7 @@ def _args(argv=None):
 def input_pairs_per_s(files, cfg, cores: int, batches: int) -> dict:
     """Pairs/s of the training input with tf.data's own thread pool of `cores` threads."""
     import tensorflow as tf
-    from ff3d_tf.training.trainer import training_dataset
+    from ff3d_tf.training.input import training_dataset
     options = tf.data.Options()
     options.threading.private_threadpool_size = cores
     options.threading.max_intra_op_parallelism = 1
@@ -115,7 +115,8 @@ def _time_steps(trainer, iterator, steps: int) -> dict:
 
 
 def train_step_and_end_to_end(files, cfg, steps: int, model_dir: str) -> dict:
-    from ff3d_tf.training.trainer import Trainer, training_dataset
+    from ff3d_tf.training.input import training_dataset
+    from ff3d_tf.training.trainer import Trainer
     trainer = Trainer(cfg, model_dir, files, log_fn=lambda _: None)
     batch_size = cfg.train.global_batch_size
     real = training_dataset(files, cfg, batch_size)

@@ -1,6 +1,9 @@
-"""Evaluate a checkpoint or SavedModel on validation records; prints the paper's tables beside the zero-flow baseline.
+"""Evaluate a model on validation records; prints the paper's tables beside the zero-flow baseline.
 
-python tools/eval.py --config C --data_dir VAL --checkpoint MODEL_DIR_OR_SAVED_MODEL [--out_dir O]
+python tools/eval.py --config C --data_dir VAL --checkpoint MODEL [--out_dir O]
+    MODEL: a model_dir or checkpoint prefix, a SavedModel directory (tools/export.py), an .onnx file
+    (tools/export_onnx.py) or a portable XLA export directory (tools/export_xla.py, batch 1): what the path holds
+    chooses the runtime (ff3d_tf/inference/predictor.py).
 python tools/eval.py --protocol av2 --set data.source=pair_records --data_dir AV2_VAL_RECORDS --checkpoint M
     (the Argoverse 2 2024 challenge: three-way and bucketed normalized EPE in metres per frame over the eval mask,
     35 m box, no ground; and the paper's tables in m/s on the same points. Records: tools/write_pair_records.py)
@@ -20,8 +23,10 @@ from ff3d_tf.training.evaluation import evaluate, evaluate_av2, write_results
 def main():
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--data_dir", required=True)
-    p.add_argument("--checkpoint", required=True, help="model_dir, checkpoint prefix, or SavedModel directory")
-    p.add_argument("--out_dir", default=None, help="where metrics.json / metrics_zero_flow.json / metrics.csv go")
+    p.add_argument("--checkpoint", required=True, help="model_dir, checkpoint prefix, SavedModel directory, .onnx "
+                                                       "file or portable XLA export directory")
+    p.add_argument("--out_dir", default=None, help="where metrics.json / metrics_zero_flow.json / metrics.csv go "
+                                                   "(default: --checkpoint, or the folder of a prefix or file)")
     p.add_argument("--max_pairs", type=int, default=0)
     p.add_argument("--protocol", choices=("paper", "av2"), default="paper")
     args = p.parse_args()

@@ -1,4 +1,6 @@
 """Export a checkpoint as a SavedModel for serving: python tools/export.py --config C --checkpoint M --out DIR"""
+import os
+
 import _common
 
 from ff3d_tf.inference.saved_model import export_saved_model
@@ -13,7 +15,8 @@ def main():
     cfg = _common.load(args)
     model = restore_model(cfg, args.checkpoint)
     export_saved_model(model, args.out, cfg.data.point_bucket_base, cfg.model.jit_compile)
-    print(f"wrote SavedModel {args.out} (signature serving_default)")
+    cfg.save(os.path.join(args.out, "config.yaml"))  # the tools given this SavedModel load it (tools/_common.py)
+    print(f"wrote SavedModel {args.out} (signature serving_default) and its config.yaml")
 
 
 if __name__ == "__main__":

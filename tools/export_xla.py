@@ -7,17 +7,21 @@ Without --checkpoint the weights are the model's random initialisation (enough f
 TensorFlow's results on fixed inputs, which the runner compares with the device's. Needs the `xla` extra
 (`pip install .[xla]`); run the result where only JAX is installed with `python tools/run_xla.py DIR`.
 """
+import os
+
 import _common
 
-from ff3d_tf.inference import xla_artifact
+from ff3d_tf import xla_export_dir
 from ff3d_tf.inference.xla_export import PLATFORMS, export_forward
+from ff3d_tf.training.xla_step_export import export_train_steps
 
 
 def main():
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--checkpoint", default=None, help="checkpoint prefix or model_dir (default: random weights)")
     p.add_argument("--points", default="32000,100000,255000,1000000", help="cloud sizes, comma-separated")
-    p.add_argument("--precisions", default="float32", help=f"comma-separated, of {', '.join(xla_artifact.PRECISIONS)}")
+    p.add_argument("--precisions", default="float32",
+                   help=f"comma-separated, of {', '.join(xla_export_dir.PRECISIONS)}")
     p.add_argument("--platforms", default=",".join(PLATFORMS))
     p.add_argument("--batch_size", type=int, default=1)
     p.add_argument("--train_points", default="", help="cloud sizes of training-step artifacts (default: none)")
@@ -41,16 +45,21 @@ def main():
     else:
         from ff3d_tf.model import build_model
         model = build_model(cfg)
+    precisions = args.precisions.split(",")
+    train_precisions = args.train_precisions.split(",") if args.train_precisions else precisions
     try:
-        manifest = export_forward(cfg, model, points, args.out, args.precisions.split(","), args.platforms.split(","),
+        xla_export_dir.check_precisions(precisions + train_precisions)  # before the forward is written
+        manifest = export_forward(cfg, model, points, args.out, precisions, args.platforms.split(","),
                                   args.batch_size, weights_source=args.checkpoint or "random initialisation",
-                                  train_points=train_points, train_batch_sizes=train_batch_sizes,
-                                  train_precisions=args.train_precisions and args.train_precisions.split(","),
                                   reference=args.reference)
+        if train_points:
+            manifest = export_train_steps(cfg, model, args.out, train_points, train_batch_sizes, train_precisions,
+                                          reference=args.reference)
     except ValueError as e:
         p.error(str(e))
+    cfg.save(os.path.join(args.out, "config.yaml"))  # the tools given this export load it (tools/_common.py)
     print(f"wrote {len(manifest['artifacts'])} forward and {len(manifest['train_artifacts'])} training-step artifacts "
-          f"and {xla_artifact.WEIGHTS_NAME} to {args.out}")
+          f"and {xla_export_dir.WEIGHTS_NAME} to {args.out}")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,7 @@
-"""Run a SavedModel or checkpoint over a WOD TFRecord, an Argoverse 2 log or your own point clouds: flows, BEV PNGs
-and (optionally) a 3D recording for the Rerun viewer.
+"""Run a model over a WOD TFRecord, an Argoverse 2 log or your own point clouds: flows, BEV PNGs and (optionally) a
+3D recording for the Rerun viewer. The model (--checkpoint M) is a model_dir or checkpoint prefix, a SavedModel
+directory, an .onnx file or a portable XLA export directory (batch 1): what the path holds chooses the runtime
+(ff3d_tf/inference/predictor.py).
 
 python tools/predict.py --config C --checkpoint M --input SEGMENT.tfrecord --out_dir O [--png_every 10]
 python tools/predict.py --config C --checkpoint M --av2_log data/av2_sample_log --out_dir O
@@ -124,7 +126,8 @@ def _intensity_scale(text: str):
 
 def _arguments():
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
-    p.add_argument("--checkpoint", required=True, help="SavedModel directory, model_dir or checkpoint prefix")
+    p.add_argument("--checkpoint", required=True, help="model_dir, checkpoint prefix, SavedModel directory, .onnx "
+                                                       "file or portable XLA export directory")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--input", help="one WOD segment TFRecord")
     src.add_argument("--av2_log", help="an Argoverse 2 log directory (two consecutive sweeps)")

@@ -4,7 +4,8 @@ Loads DIR (written by tools/export_xla.py), compiles each artifact for the defau
 runs it on random clouds of its size and prints the median latency of --runs passes after --warmup, in a table beside
 the paper's P100 figures; then the training steps (--train_runs steps each), and, when DIR has TensorFlow's reference
 results, how far the device's are from them; --out writes the same as JSON. Imports numpy, JAX and the TensorFlow-free
-ff3d_tf.inference.xla_artifact (format, loading) and xla_timing (timing, the table) only.
+ff3d_tf.xla_export_dir (format, the run), ff3d_tf.inference.xla_timing (the forward) and
+ff3d_tf.training.xla_step_runner (the training step) only.
 """
 import argparse
 import os
@@ -14,7 +15,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # this folder, a
 
 import _common  # noqa: E402  (puts the repository root on sys.path too; imports no TensorFlow)
 
-from ff3d_tf.inference import xla_artifact, xla_timing  # noqa: E402
+from ff3d_tf import xla_export_dir  # noqa: E402
+from ff3d_tf.inference import xla_timing  # noqa: E402
+from ff3d_tf.training import xla_step_runner  # noqa: E402
 
 
 def main():
@@ -31,15 +34,16 @@ def main():
     points = _common.int_list(p, args.points, "--points")
     save = _common.json_saver(args.out)
 
+    timings = (xla_timing.ForwardTiming(args.runs, args.warmup),
+               xla_step_runner.TrainStepTiming(args.train_runs or args.runs, args.warmup))
     try:
-        result = xla_timing.run_export(args.export_dir, args.runs, args.warmup,
-                                       [v for v in args.precisions.split(",") if v], points, args.budget_s,
-                                       on_row=save, train_runs=args.train_runs)
-    except xla_artifact.ExportFormatError as e:
+        result = xla_export_dir.run_export(args.export_dir, timings, [v for v in args.precisions.split(",") if v],
+                                           points, args.budget_s, on_row=save)
+    except xla_export_dir.ExportFormatError as e:
         sys.exit(f"export error: {e}")
     if not result["latency"] and not result["train_step"] and not result["skipped"]:
         sys.exit(f"no artifact in {args.export_dir} matches --precisions {args.precisions!r} --points {args.points!r}")
-    result["table"] = xla_timing.latency_table(result)
+    result["table"] = xla_export_dir.results_table(result, timings)
     print(result["table"], flush=True)
     save(result)
 

@@ -16,6 +16,7 @@ import _common
 
 from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.training.cluster import EXIT_PEER_LOST, EXIT_PREEMPTED, PeerLostError
+from ff3d_tf.training.input import training_files
 from ff3d_tf.training.trainer import Trainer
 
 
@@ -29,9 +30,7 @@ def main():
                         "pairing run on its workers")
     args = p.parse_args()
     cfg = _common.load(args)
-    train_files = list_segment_files(args.data_dir)
-    if cfg.data.max_training_segments:
-        train_files = train_files[: cfg.data.max_training_segments]
+    train_files = training_files(list_segment_files(args.data_dir), cfg)  # data.max_training_segments applied
     val_files = list_segment_files(args.val_dir) if args.val_dir else []
     print(f"training on {len(train_files)} segment files; model_dir {args.model_dir}", flush=True)
     try:

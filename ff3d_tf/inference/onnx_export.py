@@ -51,6 +51,7 @@ import tensorflow as tf
 from ff3d_tf import geometry, internals
 from ff3d_tf.model import ops
 from ff3d_tf.model.fastflow3d import FastFlow3D
+from ff3d_tf.predictor import ServingPredictor
 
 VARIANTS = ("loop", "single_chunk")
 POSE_INPUTS = ("world_float64", "relative_float32")
@@ -245,9 +246,10 @@ def check_graph(proto, variant: str, pose_inputs: str) -> None:
 
 # -- running it with onnxruntime ------------------------------------------------------------------------------------
 
-class OnnxFlowPredictor:
+class OnnxFlowPredictor(ServingPredictor):
     """An exported ONNX file under onnxruntime (CPU): `predictor(points_tm1, points_t0, pose_tm1, pose_t0)` ->
-    {"flow_mps" [N0,3], "point_valid" [N0]} as NumPy, whatever the file's `pose_inputs`.
+    {"flow_mps" [N0,3], "point_valid" [N0]} as NumPy, whatever the file's `pose_inputs`; a
+    `ff3d_tf.predictor.Predictor` too (`predict(batch, example)` calls it with the pair's raw clouds).
 
     Checks first, with a `ValueError` naming the argument: clouds float32 [N,5], poses float64 [4,4] and rigid
     (`geometry.pose_problem_np`, the SavedModel's rules). `intra_op_threads`: onnxruntime's intra-op threads (the

@@ -22,6 +22,7 @@ import tensorflow as tf
 from ff3d_tf import geometry
 from ff3d_tf.data.pairs import bucket_size_tf
 from ff3d_tf.model.fastflow3d import FastFlow3D
+from ff3d_tf.predictor import ServingPredictor
 
 POSE_NAMES = ("pose_tm1", "pose_t0")
 
@@ -69,8 +70,9 @@ def export_saved_model(model: FastFlow3D, path: str, bucket_base: int, jit_compi
     return path
 
 
-class SavedModelPredictor:
-    """Calls a SavedModel's serving signature; raises a clear `ValueError` naming the argument on bad input.
+class SavedModelPredictor(ServingPredictor):
+    """Calls a SavedModel's serving signature; raises a clear `ValueError` naming the argument on bad input. A
+    `ff3d_tf.predictor.Predictor` too: `predict(batch, example)` calls it with the pair's raw clouds.
 
     Wrong dtype, rank or width, and poses that are not rigid transforms (`geometry.pose_problem_np`), fail here before
     the call. One instance may be called from several threads at once (the loaded function holds no per-call state).

@@ -1,16 +1,15 @@
 """Running a model forward, for whoever runs it: the trainer's periodic evaluation, evaluation and serving.
 
-`Predictor` is the contract of "flow for one padded pair" (`ff3d_tf.data.pairs.padded_singletons`) that evaluation
-takes; `ModelPredictor` is the in-memory Keras model behind it. Other predictors (a SavedModel) live with what they
-run, in `ff3d_tf.inference`.
+`ModelPredictor` is the in-memory Keras model behind the contract of "flow for one padded pair" that evaluation takes
+(`ff3d_tf.predictor.Predictor`). Other predictors (a SavedModel, an ONNX file, a portable XLA export) live with what
+they run, in `ff3d_tf.inference`.
 """
 from __future__ import annotations
-
-import abc
 
 import numpy as np
 import tensorflow as tf
 
+from ff3d_tf.predictor import Predictor
 from ff3d_tf.schema import MODEL_INPUT_KEYS
 
 
@@ -26,14 +25,6 @@ def compiled_forward(model, jit_compile: bool | None = None):
     inline = jit_compile is True
     return tf.function(lambda inputs: model(inputs, training=False, inline_stages=inline), jit_compile=jit_compile,
                        reduce_retracing=True)
-
-
-class Predictor(abc.ABC):
-    """Flow for one padded pair; subclasses differ only in what they run."""
-
-    @abc.abstractmethod
-    def predict(self, batch: dict, example: dict) -> tuple[np.ndarray, np.ndarray]:
-        """(flow_mps [N0,3], point_valid [N0]) for the pair's real t0 points, as NumPy arrays."""
 
 
 class ModelPredictor(Predictor):

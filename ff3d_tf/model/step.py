@@ -1,5 +1,5 @@
 """One training step, written once for every runner: the Trainer (`ff3d_tf.training.trainer`, under tf.distribute)
-and the portable export (`ff3d_tf.inference.xla_export.train_step_fn`, one XLA program).
+and the portable export (`ff3d_tf.training.xla_step_export.train_step_fn`, one XLA program).
 
 A step is a function of tensors: `TrainState` (weights, BatchNorm statistics, Adam's slots and iteration count) and
 a labelled batch in, the new `TrainState` with the loss and the gradients' global norm out (`StepResult`):

@@ -1,1 +1,2 @@
-"""Training and evaluation: the tf.distribute loop, the loss, the paper's metrics, evaluation and the paper studies."""
+"""Training and evaluation: the training input, the tf.distribute loop, evaluation, the paper studies, and the training
+step's portable XLA programs (export, and their TensorFlow-free runner and timing)."""

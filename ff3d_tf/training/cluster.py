@@ -3,8 +3,9 @@
 `make_strategy` (MultiWorkerMirroredStrategy when TF_CONFIG is set, behind a join barrier bounded by
 `train.peer_join_timeout_s`; MirroredStrategy or one device otherwise); `cluster_tasks` (this task and every task of
 the job); `is_peer_error` (a TF error that is a lost peer, not a bug); `lost_task` and `lost_peer_error` (naming the
-lost task in one line that says how to resume); `Watchdog` (the step bound that exits the process); the exit
-statuses of `tools/train.py`. The loop that uses them is `trainer.py`.
+lost task in one line that says how to resume); the job-wide stop request (`stop_request_bit`,
+`replica_stop_requests`, `tasks_in_stop_mask`: a bitmask of the workers that asked to stop); `Watchdog` (the step
+bound that exits the process); the exit statuses of `tools/train.py`. The loop that uses them is `trainer.py`.
 
 Faults of a multi-worker job (see README, "Faults and preemption"):
 - a lost worker (killed, stopped, unreachable) ends every other worker within `train.peer_timeout_s` with
@@ -184,6 +185,35 @@ def short_reason(err: BaseException) -> str:
     first = next((ln for ln in lines if ln and not ln.startswith(frame)), "")
     first = first.split(" [[", 1)[0]
     return f"{type(err).__name__}: {first[:200]}"
+
+
+# -- the job-wide stop request: every worker learns of a preemption at the same step -------------------------------
+MAX_NAMED_STOP_TASKS = 52  # one bit per task (bits 0..51): their float64 sum stays an exact integer
+
+
+def stop_request_bit(me: str, tasks: list[tuple[str, int, str]]) -> float:
+    """The stop request of task `me` ("worker 1") in the job-wide sum: 2 ** its number among `tasks` (1 when the job
+    has more tasks than a float64 bitmask can name)."""
+    if len(tasks) > MAX_NAMED_STOP_TASKS:
+        return 1.0
+    return float(2 ** [f"{job} {i}" for job, i, _ in tasks].index(me))
+
+
+def replica_stop_requests(stop_requested, local_replicas: int):
+    """In replica context: the sum over the job of each worker's `stop_requested` (float64: 0 or its
+    `stop_request_bit`), counted once per worker (by its first of `local_replicas` replicas): the bitmask of the
+    workers that asked to stop. ReduceOp has no MAX."""
+    ctx = tf.distribute.get_replica_context()
+    first_local = tf.equal(tf.math.floormod(ctx.replica_id_in_sync_group, local_replicas), 0)
+    return ctx.all_reduce(tf.distribute.ReduceOp.SUM,
+                          tf.where(first_local, stop_requested, tf.zeros_like(stop_requested)))
+
+
+def tasks_in_stop_mask(mask: int, tasks: list[tuple[str, int, str]]) -> str:
+    """The tasks whose bits `mask` holds ("worker 0, worker 2"), or "a worker" when the bitmask cannot say."""
+    if len(tasks) > MAX_NAMED_STOP_TASKS:
+        return "a worker"
+    return ", ".join(f"{job} {i}" for k, (job, i, _) in enumerate(tasks) if mask >> k & 1) or "a worker"
 
 
 def _join_barrier(me: str, tasks: list[tuple[str, int, str]], timeout_s: float) -> list[str]:

@@ -1,6 +1,6 @@
 """tf.data service roles (`tf.data.experimental.service`): a dispatcher and workers that run the training input.
 
-The trainer's side is `trainer.training_dataset(..., data_service_address=...)`; these start the servers, for
+The trainer's side is `input.training_dataset(..., data_service_address=...)`; these start the servers, for
 `tools/data_service.py` and for tests (in-process).
 
 Faults: the trainers read with dynamic sharding, so a worker that dies only takes the elements it held (the split

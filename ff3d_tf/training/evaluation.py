@@ -1,4 +1,9 @@
-"""Evaluation over validation records: the model and the zero-flow baseline side by side."""
+"""Evaluation over validation records: the model and the zero-flow baseline side by side.
+
+The one evaluation path of any `ff3d_tf.predictor.Predictor` (a checkpoint, a SavedModel, an ONNX file, a portable
+XLA export): `evaluate` (the paper's tables), `evaluate_av2` (the Argoverse 2 challenge), and the Trainer's periodic
+evaluation (`evaluate` on a few pairs, `write_summaries` to TensorBoard).
+"""
 from __future__ import annotations
 
 import json
@@ -12,9 +17,13 @@ from ff3d_tf import metrics_av2
 from ff3d_tf.config import ExperimentConfig, replace_config
 from ff3d_tf.data import pair_records, pairs
 from ff3d_tf.metrics import AV2_MAX_DISTANCE_M, CROP_PREFIX, SceneFlowMetrics, published_epe_keys
-from ff3d_tf.model.forward import Predictor
+from ff3d_tf.predictor import Predictor
 
 AV2_EVAL_EXTRAS = ("is_ground_t0", "category_t0")
+# What the Trainer's periodic evaluation writes to TensorBoard (`write_summaries`).
+SUMMARY_KEYS = ("all/all/mean_l2_mps", "all/moving/mean_l2_mps", "all/stationary/mean_l2_mps",
+                "vehicle/moving/mean_l2_mps", "pedestrian/moving/mean_l2_mps", "cyclist/moving/mean_l2_mps",
+                "background/all/mean_l2_mps", "three_way/mean_epe_m")
 
 
 def count_pairs(files: list[str]) -> int:
@@ -43,15 +52,16 @@ def _log_progress(done: int, total: int, t0: float, log_fn) -> None:
 
 def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
              log_fn=print) -> tuple[dict, dict]:
-    """(model metrics, zero-flow metrics) over every pair of `files` (points with a prediction only).
+    """(model metrics, zero-flow metrics) over every pair of `files`, or the first `max_pairs` (points with a
+    prediction only). `log_fn` gets the progress (None: silent, and the pairs are not counted first).
 
     Each dict also holds the three-way and bucketed EPE within the Argoverse 2 evaluator's 35 m crop, under
     `metrics.CROP_PREFIX`, to set beside published numbers.
     """
     metric, zero = SceneFlowMetrics(), SceneFlowMetrics()
     metric_crop, zero_crop = (SceneFlowMetrics(max_distance_m=AV2_MAX_DISTANCE_M) for _ in range(2))
-    total = count_pairs(files)
-    if max_pairs:
+    total = 0 if log_fn is None else count_pairs(files)
+    if max_pairs and log_fn is not None:
         total = min(total, max_pairs)
     ds = pairs.pair_dataset(files, cfg)
     if max_pairs:
@@ -65,7 +75,8 @@ def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_
                 m.update_state(ex["flow_mps_t0"], flow, ex["class_id_t0"], point_valid=valid,
                                points_xyz=ex["points_xyz_t0"])
             done += 1
-            _log_progress(done, total, t0, log_fn)
+            if log_fn is not None:
+                _log_progress(done, total, t0, log_fn)
     if done == 0:
         raise ValueError(f"no frame pairs in {files}")
     return tuple({**full.result(), **{CROP_PREFIX + k: v for k, v in published_epe_keys(crop.result()).items()}}
@@ -134,7 +145,21 @@ def evaluate_av2(cfg: ExperimentConfig, files: list[str], predictor: Predictor, 
             "paper_zero_flow": paper_zero.result(), "points_without_prediction": unseen}
 
 
+def write_summaries(log_dir: str, step: int, result: dict) -> None:
+    """The `SUMMARY_KEYS` of an `evaluate` result (those that are not NaN) as TensorBoard scalars at `step`."""
+    writer = tf.summary.create_file_writer(log_dir)
+    with writer.as_default(step=step):
+        for key in SUMMARY_KEYS:
+            if not np.isnan(result[key]):
+                tf.summary.scalar(key, result[key])
+    writer.flush()
+
+
+EVAL_CONFIG_NAME = "eval_config.yaml"  # not config.yaml: results often go into the model dir, whose config that is
+
+
 def write_results(out_dir: str, result: dict, zero: dict, cfg: ExperimentConfig) -> None:
+    """metrics.json, metrics_zero_flow.json, metrics.csv and the evaluation's config (`EVAL_CONFIG_NAME`)."""
     tf.io.gfile.makedirs(out_dir)
     for name, r in (("metrics.json", result), ("metrics_zero_flow.json", zero)):
         with tf.io.gfile.GFile(os.path.join(out_dir, name), "w") as f:
@@ -143,4 +168,4 @@ def write_results(out_dir: str, result: dict, zero: dict, cfg: ExperimentConfig)
         f.write("metric,model,zero_flow\n")
         for k in sorted(result):
             f.write(f"{k},{result[k]:.6g},{zero[k]:.6g}\n")
-    cfg.save(os.path.join(out_dir, "config.yaml"))
+    cfg.save(os.path.join(out_dir, EVAL_CONFIG_NAME))

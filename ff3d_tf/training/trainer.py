@@ -1,11 +1,12 @@
 """Custom tf.distribute training loop for FastFlow3D.
 
 MirroredStrategy over the visible GPUs (the CPU when there is none), MultiWorkerMirroredStrategy when TF_CONFIG is set
-(`cluster.make_strategy`); `distribute_datasets_from_function`; the step of `ff3d_tf.model.step` (loss scaled by the
-global batch, gradients summed over replicas, Adam), its forward and backward pass XLA-compiled; checkpoints every
-`checkpoint_every_steps` and on SIGINT/SIGTERM; resume from `--model_dir` at the same step with the same optimizer
-state and the same data order (the deterministic stream is fast-forwarded); non-finite steps are skipped and counted
-and never reach the weights.
+(`cluster.make_strategy`); `distribute_datasets_from_function` over the training input (`input.py`); the step of
+`ff3d_tf.model.step` (loss scaled by the global batch, gradients summed over replicas, Adam), its forward and backward
+pass XLA-compiled; checkpoints every `checkpoint_every_steps` and on SIGINT/SIGTERM; resume from `--model_dir` at the
+same step with the same optimizer state and the same data order (the deterministic stream is fast-forwarded);
+non-finite steps are skipped and counted and never reach the weights; every `eval_every_steps` the evaluation of
+`evaluation.py` on a few validation pairs.
 
 Faults of a multi-worker job (see README, "Faults and preemption"; the machinery is `cluster.py`):
 - a lost worker (killed, stopped, unreachable) ends every other worker within `train.peer_timeout_s` with
@@ -33,13 +34,15 @@ from ff3d_tf import internals
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
 from ff3d_tf.checkpoints import restore_newest_intact
-from ff3d_tf.metrics import SceneFlowMetrics
 from ff3d_tf.model import build_model
 from ff3d_tf.model import step as step_lib
-from ff3d_tf.model.forward import compiled_forward, model_inputs
+from ff3d_tf.model.forward import ModelPredictor
 from ff3d_tf.model.step import make_optimizer
 from ff3d_tf.training.cluster import (EXIT_PREEMPTED, PeerLostError, Watchdog, cluster_tasks, is_peer_error,
-                                      lost_peer_error, lost_task, make_strategy, short_reason)
+                                      lost_peer_error, lost_task, make_strategy, replica_stop_requests, short_reason,
+                                      stop_request_bit, tasks_in_stop_mask)
+from ff3d_tf.training.evaluation import evaluate, write_summaries
+from ff3d_tf.training.input import training_dataset, training_files
 
 _LOG = logging.getLogger(__name__)
 
@@ -67,35 +70,6 @@ def _chief_and_write_dir(strategy: tf.distribute.Strategy, model_dir: str) -> tu
     return False, os.path.join(model_dir, f"tmp_{task_type}_{task_id}")
 
 
-DATA_SERVICE_JOB = "ff3d_train"  # trainers sharing a tf.data service job read disjoint batches of one stream
-
-
-def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, shard=None, skip_batches: int = 0,
-                     data_service_address: str | None = None):
-    """Repeated, shuffled, batched and bucketed training examples.
-
-    Without a data service the order is seeded (the same on every run), so a resume fast-forwards `skip_batches`
-    to the exact position. With `data_service_address` (grpc://host:port of a tf.data service dispatcher), decoding,
-    pairing and batching run on the service's workers, the segment files are split among them (dynamic sharding:
-    every pair once per epoch) and batches arrive in the order workers finish them: training resumes from its
-    checkpoint at the same step with the same weights, but the data order is not replayed.
-    """
-    ds = pairs.pair_dataset(files, cfg, training_labels=True)  # data.labels: the human labels or pseudo-labels
-    if shard is not None and not data_service_address:
-        ds = ds.shard(*shard)
-    if cfg.data.cache_decoded:
-        ds = ds.cache()
-    ds = ds.shuffle(cfg.data.shuffle_buffer, seed=cfg.train.seed, reshuffle_each_iteration=True).repeat()
-    ds = pairs.batch_examples(ds, batch_size, cfg.data.point_bucket_base, drop_remainder=True)
-    if data_service_address:
-        ds = ds.apply(tf.data.experimental.service.distribute(
-            processing_mode=tf.data.experimental.service.ShardingPolicy.DYNAMIC, service=data_service_address,
-            job_name=DATA_SERVICE_JOB))
-    elif skip_batches:
-        ds = ds.skip(skip_batches)
-    return ds.prefetch(2)
-
-
 def _over_replicas(loss, grads, new_bn_statistics):
     """The step's reduction in replica context: every replica gets the global loss and gradients (summed: each
     replica's loss is already divided by the global batch) and the replicas' mean BatchNorm moving statistics (each
@@ -116,7 +90,7 @@ class Trainer:
     def __init__(self, cfg: ExperimentConfig, model_dir: str, train_files: list[str], val_files: list[str] = (),
                  strategy: tf.distribute.Strategy | None = None, log_fn=print, data_service_address: str | None = None):
         self.cfg, self.model_dir = cfg, model_dir
-        self.train_files, self.val_files = list(train_files), list(val_files)
+        self.train_files, self.val_files = training_files(train_files, cfg), list(val_files)
         self.strategy = strategy or make_strategy(cfg.train.peer_timeout_s, cfg.train.peer_join_timeout_s)
         self._cluster = cluster_tasks(self.strategy)  # None for one process
         self.data_service_address = data_service_address
@@ -180,22 +154,14 @@ class Trainer:
         self.nonfinite_in_row.assign((self.nonfinite_in_row + 1) * skipped)  # 0 after a finite step
         self.global_step.assign_add(1)
 
-    def _replica_stop_requests(self, stop_requested):
-        # Summed over the job: each worker counts once (its first local replica), so the sum is the bitmask of the
-        # workers that asked to stop. ReduceOp has no MAX.
-        ctx = tf.distribute.get_replica_context()
-        local = len(self.strategy.extended.worker_devices)
-        first_local = tf.equal(tf.math.floormod(ctx.replica_id_in_sync_group, local), 0)
-        return ctx.all_reduce(tf.distribute.ReduceOp.SUM,
-                              tf.where(first_local, stop_requested, tf.zeros_like(stop_requested)))
-
     @tf.function
     def _step_and_stop(self, iterator, stop_requested):
         """`step` plus the job-wide stop request (multi-worker): `stop_requested` (float64) is this worker's (0:
         none, else 2 ** its task number) and the returned sum over the workers, all-reduced inside the same step, is
         the bitmask of those that asked: every worker learns of a preemption at the same step."""
         result = self.strategy.run(self._replica_step, args=(next(iterator),))
-        stop_by = self.strategy.run(self._replica_stop_requests, args=(stop_requested,))
+        local_replicas = len(self.strategy.extended.worker_devices)
+        stop_by = self.strategy.run(lambda s: replica_stop_requests(s, local_replicas), args=(stop_requested,))
         result = tf.nest.map_structure(lambda x: self.strategy.experimental_local_results(x)[0], result)
         self._assign_step_result(result)
         return result.loss, self.strategy.experimental_local_results(stop_by)[0]
@@ -216,7 +182,7 @@ class Trainer:
         return resumed
 
     def _input_iterator(self, start_step: int):
-        """The distributed training input, positioned at `start_step` (see `training_dataset`)."""
+        """The distributed training input, positioned at `start_step` (`input.training_dataset`)."""
         cfg, global_batch = self.cfg, self.cfg.train.global_batch_size
         if global_batch % self.strategy.num_replicas_in_sync:
             raise ValueError(f"train.global_batch_size={global_batch} is not divisible by the "
@@ -284,19 +250,8 @@ class Trainer:
                                self.checkpoint_dir)
 
     def _stop_request(self) -> float:
-        """This worker's stop request for the next step: 0, or 2 ** its task number after SIGTERM/SIGINT (1 beyond
-        the 52 tasks a float64 bitmask can name)."""
-        if self._stop_signal is None:
-            return 0.0
-        me, tasks = self._cluster
-        number = [f"{job} {i}" for job, i, _ in tasks].index(me)
-        return float(2 ** number) if len(tasks) <= 52 else 1.0
-
-    def _stopped_by(self, mask: int) -> str:
-        me, tasks = self._cluster
-        if len(tasks) > 52:
-            return "a worker"
-        return ", ".join(f"{job} {i}" for k, (job, i, _) in enumerate(tasks) if mask >> k & 1) or "a worker"
+        """This worker's stop request for the next step: 0, or its `stop_request_bit` after SIGTERM/SIGINT."""
+        return 0.0 if self._stop_signal is None else stop_request_bit(*self._cluster)
 
     def _run_step(self, iterator, watchdog, step: int) -> tuple[float, str | None]:
         """One step; returns (loss, the task whose stop request ends the job after this step, or None).
@@ -320,7 +275,7 @@ class Trainer:
         finally:
             if watchdog is not None:
                 watchdog.disarm()
-        return loss_value, (self._stopped_by(stop_by) if stop_by else None)
+        return loss_value, (tasks_in_stop_mask(stop_by, self._cluster[1]) if stop_by else None)
 
     def train(self, num_steps: int | None = None) -> dict:
         """Runs (or resumes) training to `num_steps`: restore, input, steps with logging, checkpoints and the
@@ -394,23 +349,12 @@ class Trainer:
         return {"step": int(self.global_step.numpy()), "loss": loss_value, "interrupted": False}
 
     def evaluate_subset(self, step: int) -> dict:
-        """Per-class metrics on the first `eval_num_batches` validation batches, written to TensorBoard."""
+        """The periodic evaluation: `evaluation.evaluate` of the model on the first `train.eval_num_batches`
+        validation pairs, its headline numbers written to TensorBoard (`evaluation.write_summaries`)."""
         cfg = self.cfg
-        metric = SceneFlowMetrics()
-        ds = pairs.batch_examples(pairs.pair_dataset(self.val_files, cfg), 1, cfg.data.point_bucket_base)
-        predict = compiled_forward(self.model, cfg.model.jit_compile)
-        for batch in ds.take(cfg.train.eval_num_batches):
-            out = predict(model_inputs(batch))
-            metric.update_state(batch["flow_mps_t0"], out["flow_mps"], batch["class_id_t0"],
-                                point_valid=out["point_valid"] & batch["point_mask_t0"])
-        result = metric.result()
-        writer = tf.summary.create_file_writer(os.path.join(self.model_dir, "eval"))
-        with writer.as_default(step=step):
-            for key in ("all/all/mean_l2_mps", "all/moving/mean_l2_mps", "all/stationary/mean_l2_mps",
-                        "vehicle/moving/mean_l2_mps", "pedestrian/moving/mean_l2_mps", "cyclist/moving/mean_l2_mps",
-                        "background/all/mean_l2_mps", "three_way/mean_epe_m"):
-                if not np.isnan(result[key]):
-                    tf.summary.scalar(key, result[key])
+        result, _ = evaluate(cfg, self.val_files, ModelPredictor(self.model, cfg.model.jit_compile),
+                             max_pairs=cfg.train.eval_num_batches, log_fn=None)
+        write_summaries(os.path.join(self.model_dir, "eval"), step, result)
         self.log(f"eval@{step}: all/moving {result['all/moving/mean_l2_mps']:.3f} m/s, all/stationary "
                  f"{result['all/stationary/mean_l2_mps']:.3f} m/s")
         return result

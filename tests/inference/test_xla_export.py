@@ -1,4 +1,5 @@
-"""Portable XLA export: the artifacts, run by JAX where TensorFlow cannot be imported, give TF's forward."""
+"""Portable XLA export of the forward: the artifacts, run by JAX where TensorFlow cannot be imported, give TF's
+forward. (The training step's artifacts and the runner tool: tests/training/test_xla_step.py.)"""
 import json
 import os
 
@@ -11,25 +12,25 @@ import tensorflow as tf  # noqa: E402
 
 from conftest import ROOT  # noqa: E402
 from no_tensorflow import run_without_tf  # noqa: E402
+from ff3d_tf import xla_export_dir  # noqa: E402
 from ff3d_tf.inference import xla_artifact, xla_timing  # noqa: E402
-from ff3d_tf.inference.xla_export import export_forward, model_weights  # noqa: E402
+from ff3d_tf.inference.xla_export import export_forward  # noqa: E402
 from ff3d_tf.model import build_model  # noqa: E402
 from ff3d_tf.schema import MODEL_INPUT_KEYS  # noqa: E402
-from ff3d_tf.model.losses import batch_flow_loss  # noqa: E402
-from ff3d_tf.model.step import make_optimizer  # noqa: E402
+from ff3d_tf.xla_export_dir import model_weights  # noqa: E402
 
 POINTS = (700, 1500)  # tiny config buckets (base 1024): 1024 and 1536
-TRAIN_POINTS, TRAIN_BATCH = (900,), 2  # one training-step artifact: 2 x 1024 points
 
 # The JAX side of the comparison: reads the export and the saved inputs, writes the artifact's outputs.
 RUN_ON_INPUTS = """
 import sys
 import numpy as np
 sys.path.insert(0, sys.argv[1])
+from ff3d_tf import xla_export_dir
 from ff3d_tf.inference import xla_artifact
 export_dir, inputs_path, outputs_path = sys.argv[2:5]
-manifest = xla_artifact.read_manifest(export_dir)
-weights = xla_artifact.load_weights(export_dir, manifest)
+manifest = xla_export_dir.read_manifest(export_dir)
+weights = xla_export_dir.load_weights(export_dir, manifest)
 saved = np.load(inputs_path)
 outputs = {}
 for i, entry in enumerate(manifest["artifacts"]):
@@ -53,9 +54,7 @@ def exported_tiny(tiny_config, tmp_path_factory):
             centre = 1.0 if "variance" in v.path or "gamma" in v.path else 0.0
             v.assign(rng.uniform(centre - 0.2, centre + 0.2, v.shape).astype(np.float32))
     out_dir = str(tmp_path_factory.mktemp("xla"))
-    manifest = export_forward(tiny_config, model, POINTS, out_dir, precisions=("float32", "tf32"), log=lambda _: None,
-                              train_points=TRAIN_POINTS, train_batch_sizes=(TRAIN_BATCH,),
-                              train_precisions=("float32",), reference=True)
+    manifest = export_forward(tiny_config, model, POINTS, out_dir, precisions=("float32", "tf32"), log=lambda _: None)
     return model, out_dir, manifest
 
 
@@ -67,14 +66,14 @@ def test_artifacts_equal_tf_forward_without_tensorflow(exported_tiny, tmp_path):
     float32 = [e for e in manifest["artifacts"] if e["precision"] == "float32" and e["points"] == 1500]
     export_dir = tmp_path / "float32_only"
     export_dir.mkdir()
-    for name in (xla_artifact.WEIGHTS_NAME, *(e["file"] for e in float32)):
+    for name in (xla_export_dir.WEIGHTS_NAME, *(e["file"] for e in float32)):
         os.symlink(os.path.join(out_dir, name), export_dir / name)
-    (export_dir / xla_artifact.MANIFEST_NAME).write_text(json.dumps({**manifest, "artifacts": float32}))
+    (export_dir / xla_export_dir.MANIFEST_NAME).write_text(json.dumps({**manifest, "artifacts": float32}))
     rng = np.random.default_rng(0)
     forward = tf.function(lambda x: model(x, training=False, inline_stages=True), jit_compile=True)
     inputs, reference = {}, {}
     for i, entry in enumerate(float32):
-        arrays = xla_artifact.random_inputs(manifest, entry, rng)
+        arrays = xla_export_dir.random_inputs(manifest, entry, rng)
         inputs.update({f"{i}_{k}": a for k, a in zip(MODEL_INPUT_KEYS, arrays)})
         reference[i] = forward(dict(zip(MODEL_INPUT_KEYS, arrays)))
     np.savez(tmp_path / "inputs.npz", **inputs)
@@ -100,7 +99,7 @@ def test_paper_config_artifact_equals_tf_forward_without_tensorflow(tmp_path):
     model = build_model(cfg)
     manifest = export_forward(cfg, model, [12000], str(tmp_path / "export"), log=lambda _: None)
     (entry,) = manifest["artifacts"]
-    arrays = xla_artifact.random_inputs(manifest, entry, np.random.default_rng(1))
+    arrays = xla_export_dir.random_inputs(manifest, entry, np.random.default_rng(1))
     forward = tf.function(lambda x: model(x, training=False, inline_stages=True), jit_compile=True)
     reference = forward(dict(zip(MODEL_INPUT_KEYS, arrays)))
     np.savez(tmp_path / "inputs.npz", **{f"0_{k}": a for k, a in zip(MODEL_INPUT_KEYS, arrays)})
@@ -114,74 +113,13 @@ def test_paper_config_artifact_equals_tf_forward_without_tensorflow(tmp_path):
     np.testing.assert_allclose(got["0_flow_mps"], reference["flow_mps"].numpy(), rtol=0, atol=1e-4)
 
 
-def test_runner_without_tensorflow_writes_latency_json(exported_tiny, tmp_path):
-    _, out_dir, _ = exported_tiny
-    out_json = tmp_path / "latency.json"
-    stdout = run_without_tf(os.path.join(ROOT, "tools", "run_xla.py"), out_dir, "--runs", "2", "--warmup", "1",
-                             "--points", f"700,{TRAIN_POINTS[0]}", "--precisions", "float32", "--out", str(out_json))
-    result = json.loads(out_json.read_text())
-    assert result["platform"] == "cpu" and result["num_weights"] == len(json.load(
-        open(os.path.join(out_dir, xla_artifact.MANIFEST_NAME)))["weights"])
-    rows = {(r["points"], r["precision"]): r for r in result["latency"]}
-    assert sorted(rows) == [(700, "float32")]
-    for r in rows.values():
-        assert r["runs"] == 2 and 0 < r["min_ms"] <= min(r["median_ms"], r["mean_ms"]) and r["median_host_ms"] > 0
-    assert "paper P100 ms" in stdout and "| 700 | float32 |" in stdout
-    # The reference: TensorFlow's results at export time, here recomputed by the runner without TensorFlow.
-    assert rows[(700, "float32")]["reference"]["max_abs_flow_diff_mps"] < 1e-4
-    assert rows[(700, "float32")]["reference"]["valid_mismatches"] == 0
-    (train,) = result["train_step"]
-    assert (train["batch_size"], train["points"], train["runs"]) == (TRAIN_BATCH, TRAIN_POINTS[0], 2)
-    assert train["ms_per_pair"] == pytest.approx(train["median_ms"] / TRAIN_BATCH)
-    assert train["reference"]["loss_rel_diff"] < 1e-4 and train["reference"]["grad_norm_rel_diff"] < 1e-3
-    assert f"| {TRAIN_BATCH} x {TRAIN_POINTS[0]} | float32 |" in stdout
-
-
-def test_train_step_equals_keras_adam_training(exported_tiny, tiny_config):
-    """Two exported training steps (JAX) against two steps of the model trained by TensorFlow with the Trainer's loss
-    and optimizer (Keras' Adam): loss, weights, Adam-updated weights and BatchNorm statistics agree."""
-    model, out_dir, manifest = exported_tiny
-    (entry,) = manifest["train_artifacts"]
-    assert (entry["batch_size"], entry["padded_points"], entry["precision"]) == (TRAIN_BATCH, 1024, "float32")
-    weights = xla_artifact.load_weights(out_dir, manifest)
-    step = xla_artifact.CompiledTrainStep(xla_artifact.load_train_step(out_dir, entry, manifest),
-                                          xla_artifact.initial_train_state(weights, manifest))
-    rng = np.random.default_rng(4)
-    batch = xla_artifact.random_inputs(manifest, entry, rng) + xla_artifact.random_labels(entry, rng)
-    jax_losses = [float(step(step.on_device(batch))[0]) for _ in range(2)]
-
-    reference = build_model(tiny_config)
-    reference.set_weights(model.get_weights())
-    optimizer = make_optimizer(tiny_config)
-    tf_batch = dict(zip(MODEL_INPUT_KEYS + xla_artifact.TRAIN_LABEL_KEYS, batch))
-    tf_losses = []
-    for _ in range(2):
-        with tf.GradientTape() as tape:
-            out = reference({k: tf_batch[k] for k in MODEL_INPUT_KEYS}, training=True)
-            loss = batch_flow_loss(tf_batch, out, tiny_config.train.background_weight, TRAIN_BATCH)
-        optimizer.apply_gradients(zip(tape.gradient(loss, reference.trainable_variables),
-                                      reference.trainable_variables))
-        tf_losses.append(float(loss))
-    np.testing.assert_allclose(jax_losses, tf_losses, rtol=1e-5)
-    assert jax_losses[1] < jax_losses[0]  # lr 1e-3: the second step already sees a lower loss
-    num_weights = len(model_weights(model))
-    got = [np.asarray(x) for x in step.state[:num_weights]]
-    for var, value in zip(model_weights(reference), got):
-        # Adam moves each weight by about lr = 1e-3 per step: a wrong update (sign, bias correction, epsilon) is off by
-        # ~1e-3; 1e-5 allows for a gradient element near 0 whose rounding Adam amplifies. BatchNorm statistics (up
-        # to ~12 here): float32 rounding.
-        np.testing.assert_allclose(value, var.numpy(), rtol=1e-6, atol=1e-5, err_msg=var.path)
-    moved = [np.abs(v - b).max() for v, b in zip(got, weights)]
-    assert max(moved) > 1e-3
-    assert int(np.asarray(step.state[-1])) == 2  # iterations
-
-
 def test_precision_is_written_into_the_program(exported_tiny):
     """TF32 off -> convolutions at HIGHEST precision (float32-exact on GPUs); the tf32 artifact leaves them at the
     default precision (not printed)."""
     from jax import export
     _, out_dir, manifest = exported_tiny
-    for entry in manifest["artifacts"] + manifest["train_artifacts"]:
+    assert manifest["train_artifacts"] == []
+    for entry in manifest["artifacts"]:
         with open(os.path.join(out_dir, entry["file"]), "rb") as f:
             text = export.deserialize(bytearray(f.read())).mlir_module()
         assert "stablehlo.convolution" in text
@@ -190,13 +128,13 @@ def test_precision_is_written_into_the_program(exported_tiny):
 
 def test_bad_exports_are_named(exported_tiny, tmp_path):
     _, out_dir, manifest = exported_tiny
-    (tmp_path / xla_artifact.MANIFEST_NAME).write_text(json.dumps({**manifest, "format": "other/9"}))
-    with pytest.raises(xla_artifact.ExportFormatError, match="manifest.json: field format"):
-        xla_artifact.read_manifest(str(tmp_path))
+    (tmp_path / xla_export_dir.MANIFEST_NAME).write_text(json.dumps({**manifest, "format": "other/9"}))
+    with pytest.raises(xla_export_dir.ExportFormatError, match="manifest.json: field format"):
+        xla_export_dir.read_manifest(str(tmp_path))
     wrong = [dict(w) for w in manifest["weights"]]
     wrong[1]["shape"] = [w + 1 for w in wrong[1]["shape"]]
-    with pytest.raises(xla_artifact.ExportFormatError, match=r"weights.npz: array w001 \(.*\) is float32"):
-        xla_artifact.load_weights(out_dir, {**manifest, "weights": wrong})
+    with pytest.raises(xla_export_dir.ExportFormatError, match=r"weights.npz: array w001 \(.*\) is float32"):
+        xla_export_dir.load_weights(out_dir, {**manifest, "weights": wrong})
     with pytest.raises(ValueError, match="precision 'fp8' unknown"):
         export_forward(None, None, [10], str(tmp_path / "x"), precisions=("fp8",))
 
@@ -214,3 +152,26 @@ def test_latency_table_beside_the_paper():
     assert rows[0] == "| 32,000 | float32 | 4.00 | 4.10 | 3.90 | 5.00 | 49.3 | 12.3x | yes |"
     assert rows[1] == "| 1,000,000 | tf32 | 12.50 | 12.60 | 12.00 | 15.00 | 98.1 | 7.8x | no |"
     assert rows[2].endswith("| - | - | - |")
+
+
+def test_predictor_runs_a_pair_on_the_smallest_artifact_that_holds_it(exported_tiny, tiny_config):
+    """`XlaPredictor` (the `ff3d_tf.predictor.Predictor` of an export): a pair padded to 800 points runs on the 1024
+    artifact (224 more masked points change no flow); one of 1600 fits no artifact (1024, 1536) and is named."""
+    from ff3d_tf import bench
+    from ff3d_tf.predictor import Predictor
+    model, out_dir, _ = exported_tiny
+    predictor = xla_artifact.XlaPredictor(out_dir)
+    assert isinstance(predictor, Predictor)
+    g = tiny_config.grid
+    bounds = (g.x_range_m, g.y_range_m, g.z_range_m)
+    rng = np.random.default_rng(5)
+    batch = {k: tf.constant(v) for k, v in bench.random_clouds(rng, 600, 800, bounds).items()}
+    flow, valid = predictor.predict(batch, {"num_points_t0": 600})
+    want = model(batch, training=False)
+    assert flow.shape == (600, 3) and valid.shape == (600,) and valid.all()
+    np.testing.assert_array_equal(valid, want["point_valid"].numpy()[0, :600])
+    np.testing.assert_allclose(flow, want["flow_mps"].numpy()[0, :600], rtol=0, atol=1e-4)
+    assert list(predictor._compiled) == [xla_artifact.artifact_name(1024, "float32")]
+    big = bench.random_clouds(rng, 1600, 1600, bounds)
+    with pytest.raises(ValueError, match="a pair padded to 1600 points is larger than every artifact"):
+        predictor.predict(big, {"num_points_t0": 1600})

@@ -77,6 +77,19 @@ def test_peer_errors_are_told_from_other_errors():
     assert not cluster.is_peer_error(ValueError("not a TF error"))
 
 
+def test_the_stop_bitmask_names_the_workers_that_asked():
+    tasks = TASKS + [("worker", 2, "127.0.0.1:41003")]
+    assert [cluster.stop_request_bit(f"worker {i}", tasks) for i in range(3)] == [1.0, 2.0, 4.0]
+    assert cluster.tasks_in_stop_mask(1 + 4, tasks) == "worker 0, worker 2"
+    many = [("worker", i, "") for i in range(cluster.MAX_NAMED_STOP_TASKS + 1)]  # more than a float64 bitmask names
+    assert cluster.stop_request_bit("worker 52", many) == 1.0 and cluster.tasks_in_stop_mask(1, many) == "a worker"
+    # One worker with two replicas (the two logical CPUs of conftest): its request counts once in the job's sum.
+    strategy = tf.distribute.MirroredStrategy(["/cpu:0", "/cpu:1"])
+    run = tf.function(lambda x: strategy.run(lambda s: cluster.replica_stop_requests(s, 2), args=(x,)))
+    summed = strategy.experimental_local_results(run(tf.constant(4.0, tf.float64)))
+    assert [float(v) for v in summed] == [4.0, 4.0]
+
+
 def test_short_reason_drops_tensorflows_frame():
     err = tf.errors.UnavailableError(None, None, "Graph execution error:\n\nDetected at node X defined at:\n"
                                      "  File \"a.py\", line 1, in f\n\nCollective ops is aborted by: gone\n"

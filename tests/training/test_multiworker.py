@@ -21,7 +21,7 @@ from replica_reference import GLOBAL_BATCH, Reference, replica_config
 
 from ff3d_tf.checkpoints import restore_model
 from ff3d_tf.training import cluster
-from ff3d_tf.training.trainer import training_dataset
+from ff3d_tf.training.input import training_dataset
 
 STEPS = 3
 

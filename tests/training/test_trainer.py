@@ -84,3 +84,30 @@ def test_bad_record_stops_training_with_its_name_or_is_skipped(tiny_records, tin
     skip = replace_config(tiny_config, {"data.skip_bad_records": True})
     out = Trainer(_cfg(skip), str(tmp_path / "s"), [path], log_fn=lambda s: None).train(2)
     assert out["step"] == 2 and np.isfinite(out["loss"])
+
+
+def test_periodic_evaluation_is_the_evaluation_on_a_few_pairs(tiny_segment, tiny_config, tmp_path):
+    from ff3d_tf.model.forward import ModelPredictor
+    from ff3d_tf.training.evaluation import SUMMARY_KEYS, evaluate
+    cfg = _cfg(tiny_config, eval_num_batches=2)
+    t = Trainer(cfg, str(tmp_path / "m"), [tiny_segment], [tiny_segment], log_fn=lambda s: None)
+    got = t.evaluate_subset(7)
+    want, _ = evaluate(cfg, [tiny_segment], ModelPredictor(t.model), max_pairs=2, log_fn=None)
+    every, _ = evaluate(cfg, [tiny_segment], ModelPredictor(t.model), log_fn=None)
+    assert 0 < got["all/all/count"] == want["all/all/count"] < every["all/all/count"]  # 2 of the segment's 3 pairs
+    np.testing.assert_allclose([got[k] for k in SUMMARY_KEYS], [want[k] for k in SUMMARY_KEYS], rtol=1e-6)
+    (events,) = tf.io.gfile.glob(str(tmp_path / "m" / "eval" / "events.out.tfevents.*"))
+    written = {(v.tag, e.step) for e in tf.compat.v1.train.summary_iterator(events) for v in e.summary.value}
+    assert written == {(k, 7) for k in SUMMARY_KEYS if not np.isnan(got[k])} and written
+
+
+def test_max_training_segments_caps_the_training_input(tiny_segment, tiny_config, tmp_path):
+    from ff3d_tf.training.input import training_dataset, training_files
+    missing = str(tmp_path / "missing.tfrecord")  # read only when the cap leaves it in
+    capped = replace_config(tiny_config, {"data.max_training_segments": 1})
+    assert training_files([tiny_segment, missing], capped) == [tiny_segment]
+    assert training_files([tiny_segment, missing], tiny_config) == [tiny_segment, missing]
+    batch = next(iter(training_dataset([tiny_segment, missing], capped, 2)))
+    assert batch["points_xyz_t0"].shape[0] == 2
+    with pytest.raises(tf.errors.NotFoundError):
+        next(iter(training_dataset([tiny_segment, missing], tiny_config, 2)))
