@@ -67,3 +67,19 @@ def pytest_sessionstart(session):
     from ff3d_tf import cpu, internals
     reporter.write_line(f"CPU: {cpu.one_line(cpu.describe())}; TensorFlow's oneDNN operations "
                         f"{'on' if internals.onednn_enabled() else 'off'}")
+
+
+def tiny_model_off_initial_values(cfg, seed: int = 3):
+    """A model of `cfg` whose kernels keep their Glorot initialisation and whose every other weight (biases, BatchNorm
+    scales, offsets and statistics) is moved off its 0/1 initial value, so that a weight passed in the wrong place
+    shows (the portable XLA exports' tests)."""
+    import numpy as np
+    from ff3d_tf.model import build_model
+    from ff3d_tf.xla_export_dir import model_weights
+    model = build_model(cfg)
+    rng = np.random.default_rng(seed)
+    for v in model_weights(model):
+        if "kernel" not in v.path:
+            centre = 1.0 if "variance" in v.path or "gamma" in v.path else 0.0
+            v.assign(rng.uniform(centre - 0.2, centre + 0.2, v.shape).astype(np.float32))
+    return model

@@ -6,7 +6,6 @@ they run, in `ff3d_tf.inference`.
 """
 from __future__ import annotations
 
-import numpy as np
 import tensorflow as tf
 
 from ff3d_tf.predictor import Predictor

@@ -10,14 +10,13 @@ jax = pytest.importorskip("jax", reason="the xla extra (pip install .[xla]) prov
 
 import tensorflow as tf  # noqa: E402
 
-from conftest import ROOT  # noqa: E402
+from conftest import ROOT, tiny_model_off_initial_values  # noqa: E402
 from no_tensorflow import run_without_tf  # noqa: E402
 from ff3d_tf import xla_export_dir  # noqa: E402
 from ff3d_tf.inference import xla_artifact, xla_timing  # noqa: E402
 from ff3d_tf.inference.xla_export import export_forward  # noqa: E402
 from ff3d_tf.model import build_model  # noqa: E402
 from ff3d_tf.schema import MODEL_INPUT_KEYS  # noqa: E402
-from ff3d_tf.xla_export_dir import model_weights  # noqa: E402
 
 POINTS = (700, 1500)  # tiny config buckets (base 1024): 1024 and 1536
 
@@ -45,14 +44,8 @@ np.savez(outputs_path, **outputs)
 
 @pytest.fixture(scope="module")
 def exported_tiny(tiny_config, tmp_path_factory):
-    """A tiny model, exported. Kernels keep their Glorot initialisation; every other weight (biases, BatchNorm scales,
-    offsets and statistics) is moved off its 0/1 initial value, so that a weight passed in the wrong place shows."""
-    model = build_model(tiny_config)
-    rng = np.random.default_rng(3)
-    for v in model_weights(model):
-        if "kernel" not in v.path:
-            centre = 1.0 if "variance" in v.path or "gamma" in v.path else 0.0
-            v.assign(rng.uniform(centre - 0.2, centre + 0.2, v.shape).astype(np.float32))
+    """A tiny model (`tiny_model_off_initial_values`), exported."""
+    model = tiny_model_off_initial_values(tiny_config)
     out_dir = str(tmp_path_factory.mktemp("xla"))
     manifest = export_forward(tiny_config, model, POINTS, out_dir, precisions=("float32", "tf32"), log=lambda _: None)
     return model, out_dir, manifest

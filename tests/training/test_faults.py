@@ -84,7 +84,11 @@ def test_the_stop_bitmask_names_the_workers_that_asked():
     many = [("worker", i, "") for i in range(cluster.MAX_NAMED_STOP_TASKS + 1)]  # more than a float64 bitmask names
     assert cluster.stop_request_bit("worker 52", many) == 1.0 and cluster.tasks_in_stop_mask(1, many) == "a worker"
     # One worker with two replicas (the two logical CPUs of conftest): its request counts once in the job's sum.
-    strategy = tf.distribute.MirroredStrategy(["/cpu:0", "/cpu:1"])
+    # Reduced by copies, not collective ops: TensorFlow keeps collective instances per process, keyed so that
+    # another MirroredStrategy over the same devices later in this process (the trainer tests) would find this
+    # float64 instance where it reduces float32.
+    strategy = tf.distribute.MirroredStrategy(["/cpu:0", "/cpu:1"],
+                                              cross_device_ops=tf.distribute.ReductionToOneDevice())
     run = tf.function(lambda x: strategy.run(lambda s: cluster.replica_stop_requests(s, 2), args=(x,)))
     summed = strategy.experimental_local_results(run(tf.constant(4.0, tf.float64)))
     assert [float(v) for v in summed] == [4.0, 4.0]

@@ -12,7 +12,7 @@ jax = pytest.importorskip("jax", reason="the xla extra (pip install .[xla]) prov
 
 import tensorflow as tf  # noqa: E402
 
-from conftest import ROOT  # noqa: E402
+from conftest import ROOT, tiny_model_off_initial_values  # noqa: E402
 from no_tensorflow import run_without_tf  # noqa: E402
 from ff3d_tf import xla_export_dir  # noqa: E402
 from ff3d_tf.inference.xla_export import export_forward  # noqa: E402
@@ -30,15 +30,9 @@ TRAIN_POINTS, TRAIN_BATCH = (900,), 2  # one training-step artifact: 2 x 1024 po
 
 @pytest.fixture(scope="module")
 def exported_tiny(tiny_config, tmp_path_factory):
-    """A tiny model, its forward exported and its training step added, both with TensorFlow's reference. Kernels keep
-    their Glorot initialisation; every other weight (biases, BatchNorm scales, offsets and statistics) is moved off
-    its 0/1 initial value, so that a weight passed in the wrong place shows."""
-    model = build_model(tiny_config)
-    rng = np.random.default_rng(3)
-    for v in model_weights(model):
-        if "kernel" not in v.path:
-            centre = 1.0 if "variance" in v.path or "gamma" in v.path else 0.0
-            v.assign(rng.uniform(centre - 0.2, centre + 0.2, v.shape).astype(np.float32))
+    """A tiny model (`tiny_model_off_initial_values`), its forward exported and its training step added, both with
+    TensorFlow's reference."""
+    model = tiny_model_off_initial_values(tiny_config)
     out_dir = str(tmp_path_factory.mktemp("xla"))
     export_forward(tiny_config, model, POINTS, out_dir, log=lambda _: None, reference=True)
     manifest = export_train_steps(tiny_config, model, out_dir, TRAIN_POINTS, (TRAIN_BATCH,), log=lambda _: None,
