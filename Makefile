@@ -21,10 +21,11 @@ TEST_WORKERS ?= 2
 # EMULATE_CPU=zen3 caps oneDNN and XLA to AVX2 and turns TensorFlow's oneDNN operations off, as they are on an AMD
 # Zen 3 (ff3d_tf/cpu.py, EMULATIONS); the suite prints the CPU and the caps it ran under.
 EMULATE_CPU ?=
-TEST_ENV = $(if $(EMULATE_CPU),env $$($(PY) -m ff3d_tf.cpu --env $(EMULATE_CPU)),)
+EMULATION = $(PY) -c "from ff3d_tf import cpu; print(cpu.emulation_env('$(EMULATE_CPU)'))"
+TEST_ENV = $(if $(EMULATE_CPU),env $$($(EMULATION)),)
 
 test: install
-	@$(if $(EMULATE_CPU),$(PY) -m ff3d_tf.cpu --env $(EMULATE_CPU) >/dev/null,true)
+	@$(if $(EMULATE_CPU),$(EMULATION) >/dev/null,true)
 	$(TEST_ENV) $(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile --durations=15 tests
 
 test-slow: install

@@ -136,8 +136,3 @@ def emulation_env(name: str) -> str:
     if name not in EMULATIONS:
         raise SystemExit(f"EMULATE_CPU={name!r}: one of {', '.join(EMULATIONS)}")
     return " ".join(f"{k}={v}" for k, v in EMULATIONS[name].items())
-
-
-if __name__ == "__main__":
-    import sys
-    print(emulation_env(sys.argv[2]) if sys.argv[1:2] == ["--env"] else one_line(describe()))
