@@ -11,9 +11,9 @@ emulates an older one (e.g. an AVX2-only AMD Zen 3 on an AVX-512 Zen 4):
                                        x86 CPUs with AVX512_VNNI, AVX512_BF16 or AMX (TensorFlow 2.9 release notes),
                                        so an AVX2-only CPU runs Eigen kernels and TensorFlow's plain CPU allocator
 
-This project turns them on for every x86 CPU (`prefer_onednn`, called when `ff3d_tf` is imported, before TensorFlow):
-on an AVX2-only CPU oneDNN's AVX2 convolutions train the model several times faster than Eigen's
-(benchmarks/cpu_onednn_avx2.json). A value set in the environment is kept.
+On an AVX2-only CPU, TF_ENABLE_ONEDNN_OPTS=1 trains in float32 faster (benchmarks/cpu_onednn_avx2.json), but oneDNN
+has no bfloat16 convolutions there: with it on, `model.mixed_precision=true` stops with oneDNN's "could not create a
+primitive descriptor". The project keeps TensorFlow's default; the setting is the user's.
 
 `EMULATIONS` names such caps by the CPU they stand for (`make test EMULATE_CPU=zen3`). No TensorFlow here: whether
 TensorFlow's oneDNN operations are on in a process is `ff3d_tf.internals.onednn_enabled`.
@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import platform
 import re
 
 CPUINFO_PATH = "/proc/cpuinfo"
@@ -34,24 +33,12 @@ _ONEDNN_ISAS_WITHOUT_AMX = _ONEDNN_ISAS_WITHOUT_BF16 + ("AVX512_CORE_BF16", "AVX
 _XLA_MAX_ISA = re.compile(r"--xla_cpu_max_isa=(\S+)")
 
 # Environment that makes this machine's libraries behave as on the named CPU (as far as kernel choice goes; the
-# CPU's own speed and cache sizes stay this machine's). zen3: an AVX2-only CPU as this project runs on it (oneDNN on,
-# `prefer_onednn`); zen3_tf_default: the same CPU with TensorFlow's own default there (oneDNN off: Eigen kernels).
+# CPU's own speed and cache sizes stay this machine's). zen3: an AVX2-only CPU with TensorFlow's default there (oneDNN
+# off: Eigen's kernels); zen3_onednn: the same CPU with TF_ENABLE_ONEDNN_OPTS=1.
 EMULATIONS = {
-    "zen3": {"ONEDNN_MAX_CPU_ISA": "AVX2", "XLA_FLAGS": "--xla_cpu_max_isa=AVX2"},
-    "zen3_tf_default": {"ONEDNN_MAX_CPU_ISA": "AVX2", "XLA_FLAGS": "--xla_cpu_max_isa=AVX2",
-                        "TF_ENABLE_ONEDNN_OPTS": "0"},
+    "zen3": {"ONEDNN_MAX_CPU_ISA": "AVX2", "XLA_FLAGS": "--xla_cpu_max_isa=AVX2", "TF_ENABLE_ONEDNN_OPTS": "0"},
+    "zen3_onednn": {"ONEDNN_MAX_CPU_ISA": "AVX2", "XLA_FLAGS": "--xla_cpu_max_isa=AVX2", "TF_ENABLE_ONEDNN_OPTS": "1"},
 }
-_X86 = ("x86_64", "amd64", "i386", "i686")
-
-
-def prefer_onednn(environ=None, machine: str | None = None) -> bool:
-    """Sets TF_ENABLE_ONEDNN_OPTS=1 on an x86 machine unless the environment already says; True if it set it. Has
-    effect only before TensorFlow is imported (TensorFlow reads it once, at start)."""
-    environ = os.environ if environ is None else environ
-    if (machine or platform.machine()).lower() not in _X86 or "TF_ENABLE_ONEDNN_OPTS" in environ:
-        return False
-    environ["TF_ENABLE_ONEDNN_OPTS"] = "1"
-    return True
 
 
 @dataclasses.dataclass(frozen=True)

@@ -6,7 +6,6 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-import ff3d_tf  # noqa: E402,F401 - before TensorFlow: the project's oneDNN setting (ff3d_tf.cpu.prefer_onednn)
 import pytest  # noqa: E402
 import tensorflow as tf  # noqa: E402
 

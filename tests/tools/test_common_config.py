@@ -114,6 +114,16 @@ def test_eval_without_config_uses_the_models_own(tiny_segment, tiny_config, tmp_
     assert out.returncode == 0, out.stderr[-3000:]
     assert f"config: {model_dir / 'config.yaml'}, the one saved with {model_dir}" in out.stdout
     assert (tmp_path / "eval" / "metrics.json").exists()
+    assert (tmp_path / "eval" / "eval_config.yaml").exists() and not (tmp_path / "eval" / "config.yaml").exists()
+    # The SavedModel exported from it carries the config too, so a tool given the SavedModel loads the same one.
+    saved_model = tmp_path / "sm"
+    out = subprocess.run([sys.executable, "tools/export.py", "--checkpoint", str(model_dir), "--out", str(saved_model)],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    from ff3d_tf.checkpoints import saved_config
+    from ff3d_tf.config import load_config
+    assert saved_config(str(saved_model)) == str(saved_model / "config.yaml")
+    assert load_config(str(saved_model / "config.yaml")) == cfg
     # --config wins: the paper's model does not fit these weights, and the error names the model's own config.
     out = subprocess.run(command + ["--config", PAPER], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert out.returncode != 0 and "in the checkpoint but" in out.stderr, out.stderr[-3000:]
