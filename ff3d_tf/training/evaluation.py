@@ -13,13 +13,12 @@ import time
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf import metrics_av2
+from ff3d_tf import metrics_av2, schema
 from ff3d_tf.config import ExperimentConfig, replace_config
 from ff3d_tf.data import pair_records, pairs
 from ff3d_tf.metrics import AV2_MAX_DISTANCE_M, CROP_PREFIX, SceneFlowMetrics, published_epe_keys
 from ff3d_tf.predictor import Predictor
 
-AV2_EVAL_EXTRAS = ("is_ground_t0", "category_t0")
 # What the Trainer's periodic evaluation writes to TensorBoard (`write_summaries`).
 SUMMARY_KEYS = ("all/all/mean_l2_mps", "all/moving/mean_l2_mps", "all/stationary/mean_l2_mps",
                 "vehicle/moving/mean_l2_mps", "pedestrian/moving/mean_l2_mps", "cyclist/moving/mean_l2_mps",
@@ -108,7 +107,7 @@ def av2_challenge_examples(cfg: ExperimentConfig, files: list[str], predictor: P
                          "the next sweep (tools/write_pair_records.py --source av2)")
     cfg = replace_config(cfg, {"data.crop_to_grid": False, "data.labels": "human"})
     total = count_pairs(files) if not max_pairs else min(count_pairs(files), max_pairs)
-    ds = pairs.pair_dataset(files, cfg, extras=AV2_EVAL_EXTRAS, metadata=True)
+    ds = pairs.pair_dataset(files, cfg, extras=schema.AV2_EVAL_KEYS, metadata=True)
     if max_pairs:
         ds = ds.take(max_pairs)
     t0, done = time.time(), 0
