@@ -229,15 +229,6 @@ def smaps_rollup(path: str = "/proc/self/smaps_rollup") -> dict:
     return {k: out[k] for k in ("Rss", "Pss_Anon", "Pss_File", "Anonymous", "AnonHugePages") if k in out}
 
 
-def pin_cores(cores: int) -> list[int]:
-    """Restricts this process to its first `cores` CPUs (call before TensorFlow starts its thread pools)."""
-    available = sorted(os.sched_getaffinity(0))
-    if not 1 <= cores <= len(available):
-        raise ValueError(f"{cores} cores asked; this process may use {len(available)} CPUs")
-    os.sched_setaffinity(0, available[:cores])
-    return available[:cores]
-
-
 def load_average(path: str = "/proc/loadavg") -> list[str]:
     """The system's 1, 5 and 15 minute load averages as the kernel writes them; [] where the file is missing."""
     try:

@@ -35,7 +35,7 @@ import tempfile
 
 import _common
 
-from ff3d_tf import bench
+from ff3d_tf import bench, children
 
 DENSITY_LIDAR_SCALE = {"wod": 0.715, "synthetic": 1.0}  # range-image scale; points grow with its square
 WOD_TRAIN_PAIRS = 798 * 198
@@ -264,7 +264,7 @@ def main(argv=None):
     args = _args(argv)
     if args.child:
         cores, job = args.child.split(":", 1)
-        bench.pin_cores(int(cores))
+        children.pin_cores(int(cores))
         result = _child(args, int(cores), json.loads(job))
     elif args.av2:
         av2 = _av2(args, [int(c) for c in args.cores.split(",")], argv)

@@ -28,7 +28,7 @@ import tempfile
 
 import _common
 
-from ff3d_tf import bench
+from ff3d_tf import bench, children
 
 
 def _args(argv=None):
@@ -147,7 +147,7 @@ def main(argv=None):
     args = _args(argv)
     if args.input_child:
         try:
-            pinned = bench.pin_cores(args.input_child)
+            pinned = children.pin_cores(args.input_child)
         except ValueError as e:
             sys.exit(f"--cores: {e}")
         cfg = _common.load(args)
