@@ -15,7 +15,7 @@ from ff3d_tf.data.av2 import argoverse2
 from ff3d_tf.data.synthetic import av2 as sav2
 from ff3d_tf.data.synthetic import scene as sim
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from conftest import ROOT
 AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")
 NUM_SWEEPS, POINTS = 4, 4000
 FLOAT16_TOL_M = 0.04  # half a float16 step at 64-128 m is 0.031 m: stored points sit this close to their surface

@@ -14,7 +14,7 @@ from ff3d_tf import geometry, metrics_av2
 from ff3d_tf.data.av2 import argoverse2
 from ff3d_tf.data.av2 import av2_submission as sub
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from conftest import ROOT
 AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")
 LOG_ID = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"  # the sample log's id (its map files carry it)
 

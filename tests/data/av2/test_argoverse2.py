@@ -11,7 +11,7 @@ import pytest
 from ff3d_tf import schema
 from ff3d_tf.data.av2 import argoverse2
 
-ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from conftest import ROOT
 AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")
 LOG_ID = "7fab2350-7eaf-3b7e-a39d-6937a4c1bede"
 STAMPS = [315966265259836000, 315966265360032000]
