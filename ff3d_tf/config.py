@@ -26,6 +26,7 @@ class ConfigError(ValueError):
 MAX_PILLARS_PER_AXIS = 16384  # 512 in the paper; larger grids cannot fit an accelerator's memory
 MAX_WIDTH = 65536  # channels of any layer
 MAX_BUCKET_BASE = 1 << 17  # point buckets reach 12288 x base and must stay within int32
+MAX_GRU_ITERATIONS = 64  # model.gru_iterations
 
 
 def _in_range(key: str, value, lo, hi) -> None:
@@ -102,6 +103,12 @@ class DataConfig:
     max_training_segments: int = 0  # 0 = all; the data-size study sets this
     point_keep_fraction: float = 1.0  # point-density study: random share of points kept per frame
     remove_ground_below_z_m: float | None = None  # ground-removal study: drop points below this z (vehicle frame)
+    # Training augmentation (off in the paper config), drawn per pair from the training seed after the decode-once
+    # records: with this probability both clouds move by one z offset drawn uniformly from the range (m) ...
+    augment_height_offset_prob: float = 0.0
+    augment_height_offset_m: tuple[float, float] = (-0.5, 0.5)
+    # ... and with this probability each of x and y is mirrored (both clouds and the flow alike).
+    augment_flip_prob: float = 0.0
 
     def validate(self) -> None:
         if self.source not in DATA_SOURCES:
@@ -126,9 +133,18 @@ class DataConfig:
             raise ConfigError(f"data.class_ablation={self.class_ablation!r} unknown; one of {CLASS_ABLATIONS}")
         if not 0.0 < self.point_keep_fraction <= 1.0:
             raise ConfigError(f"data.point_keep_fraction={self.point_keep_fraction}: must be in (0, 1]")
+        for name in ("augment_height_offset_prob", "augment_flip_prob"):
+            value = getattr(self, name)
+            if not (_is_number(value) and 0.0 <= value <= 1.0):
+                raise ConfigError(f"data.{name}={value!r}: a probability, must be in [0, 1]")
+        lo_hi = self.augment_height_offset_m
+        if not (len(lo_hi) == 2 and all(_is_number(v) for v in lo_hi) and lo_hi[0] <= lo_hi[1]):
+            raise ConfigError(f"data.augment_height_offset_m={list(lo_hi)}: must be [lo, hi] in m with lo <= hi")
 
 
 COMPILE_MODES = ("auto", "xla", "hybrid", "none")  # model.compile
+HEADS = ("paper", "gru")  # model.head
+LOSSES = ("l2", "deflow", "deltaflow")  # train.loss
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,6 +157,10 @@ class ModelConfig:
     # Upsample-Skip (d, d_b) for rows S, T, U; row V keeps U's depth.
     decoder_dims: tuple[tuple[int, int], ...] = ((128, 128), (128, 64), (64, 64))
     head_hidden_dim: int = 32  # row Y
+    # The per-point head: paper = rows W-Z (the paper's table); gru = DeFlow's GRU point decoder (Zhang et al., ICRA
+    # 2024), `gru_iterations` refinement steps (0: an MLP on the point's encoding and its pillar's features).
+    head: str = "paper"
+    gru_iterations: int = 4
     # Zeros for row Z's kernel (the model starts at the zero-flow prediction) instead of the paper's Glorot init:
     # sum-pooled dense pillars through the linear decoder otherwise start at outputs of tens of m/s.
     zero_init_output: bool = False
@@ -177,6 +197,11 @@ class ModelConfig:
             raise ConfigError("model.decoder_dims[2][0] must equal point_feature_dim (row X concatenates them)")
         if self.compile not in COMPILE_MODES:
             raise ConfigError(f"model.compile={self.compile!r}: one of {', '.join(COMPILE_MODES)}")
+        if self.head not in HEADS:
+            raise ConfigError(f"model.head={self.head!r}: one of {', '.join(HEADS)}")
+        if not (isinstance(self.gru_iterations, int) and not isinstance(self.gru_iterations, bool)
+                and 0 <= self.gru_iterations <= MAX_GRU_ITERATIONS):
+            raise ConfigError(f"model.gru_iterations={self.gru_iterations!r}: an integer in [0, {MAX_GRU_ITERATIONS}]")
         if not (isinstance(self.mixed_precision, bool) or self.mixed_precision == "auto"):
             raise ConfigError(f"model.mixed_precision={self.mixed_precision!r}: must be one of true, false, auto")
 
@@ -194,6 +219,9 @@ class TrainConfig:
     beta_2: float = 0.999
     num_steps: int = 100000
     background_weight: float = 0.1
+    # l2: the paper's (mean per-point L2 error, background points weighted by background_weight); deflow: DeFlow's
+    # speed-bucketed mean; deltaflow: that plus class- and instance-balanced terms (DeltaFlow, arXiv 2508.17054).
+    loss: str = "l2"
     grad_clip_norm: float | None = None
     max_nonfinite_steps_in_row: int = 10
     checkpoint_every_steps: int = 500
@@ -215,6 +243,8 @@ class TrainConfig:
             raise ConfigError("train.global_batch_size must be >= 1")
         if not self.learning_rate > 0:
             raise ConfigError("train.learning_rate must be > 0")
+        if self.loss not in LOSSES:
+            raise ConfigError(f"train.loss={self.loss!r}: one of {', '.join(LOSSES)}")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ConfigError(f"train.lr_schedule={self.lr_schedule!r}: must be constant or cosine")
         if self.warmup_steps < 0 or not 0 <= self.lr_final_fraction <= 1:
@@ -374,6 +404,9 @@ class ExperimentConfig:
         self.model.validate()
         self.train.validate()
         self.nsfp.validate()
+        if self.train.loss == "deltaflow" and self.data.labels == "pseudo":
+            raise ConfigError("train.loss=deltaflow: its class and instance terms need human labels; pseudo-labels "
+                              "(data.labels=pseudo) have no classes: use train.loss=l2 or deflow")
         return self
 
     def to_dict(self) -> dict[str, Any]:

@@ -74,6 +74,7 @@ class PointKey:
     stored: str  # dtype in pair records (`ff3d_tf.data.pair_records`, precision "exact")
     stored_compact: str = ""  # ... with precision "compact" (empty: as `stored`)
     optional: bool = False  # an extra: present where the source has it (a records directory's manifest lists it)
+    padding: int = 0  # the value of padded points in a batch (-1 for the ids whose -1 means "none")
 
 
 PSEUDO_FLOW_KEY, PSEUDO_VALID_KEY = "flow_mps_pseudo_t0", "pseudo_valid_t0"
@@ -84,7 +85,7 @@ POINT_KEYS = {
     "point_features_t0": PointKey("float32", (2,), "t0", "intensity, elongation", "float32", "float16"),
     "flow_mps_t0": PointKey("float32", (3,), "t0", "label: motion from t-1 to t0, vehicle frame at t0, m/s",
                             "float32", "float16"),
-    "class_id_t0": PointKey("int32", (), "t0", "label class (CLASS_NAMES; -1 no label)", "int8"),
+    "class_id_t0": PointKey("int32", (), "t0", "label class (CLASS_NAMES; -1 no label)", "int8", padding=-1),
     "points_xyz_tm1_in_t0": PointKey("float32", (3,), "tm1", "t-1 cloud moved into the vehicle frame at t0, m",
                                      "float32"),
     "point_features_tm1": PointKey("float32", (2,), "tm1", "intensity, elongation", "float32", "float16"),
@@ -95,9 +96,13 @@ POINT_KEYS = {
                                optional=True),
     "is_ground_t0": PointKey("bool", (), "t0", "ground by the Argoverse 2 log's ground-height raster", "uint8",
                              optional=True),
-    "category_t0": PointKey("int32", (), "t0", "Argoverse 2 category index (-1: none)", "int8", optional=True),
+    "category_t0": PointKey("int32", (), "t0", "Argoverse 2 category index (-1: none)", "int8", optional=True,
+                            padding=-1),
     "is_ground_tm1": PointKey("bool", (), "tm1", "the partner cloud's ground by the same raster", "uint8",
                               optional=True),
+    "instance_id_t0": PointKey("int32", (), "t0", "the labelled box (track) the point is in, numbered within its "
+                               "pair from 0; -1: in no box", "int32", optional=True,
+                               padding=-1),
 }
 
 

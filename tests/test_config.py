@@ -1,3 +1,5 @@
+import re
+
 import pytest
 
 from ff3d_tf.config import ConfigError, NsfpConfig, load_config, replace_config
@@ -94,3 +96,23 @@ def test_lidar_selection_rule_is_the_readers(laser_names, returns):
     with pytest.raises(ValueError) as reader_error:
         DecodeOptions(laser_names, returns)
     assert str(config_error.value) == f"data.{reader_error.value}"
+
+
+@pytest.mark.parametrize("override, key", [
+    ("model.head=mlp", "model.head"),
+    ("model.gru_iterations=-1", "model.gru_iterations"),
+    ("train.loss=huber", "train.loss"),
+    ("data.augment_flip_prob=1.5", "data.augment_flip_prob"),
+    ("data.augment_height_offset_prob=-0.1", "data.augment_height_offset_prob"),
+    ("data.augment_height_offset_m=[0.5,-0.5]", "data.augment_height_offset_m"),
+])
+def test_head_loss_and_augmentation_keys_are_checked(override, key):
+    with pytest.raises(ConfigError, match=re.escape(key)):
+        load_config(None, [override])
+
+
+def test_deltaflow_refuses_pseudo_labels():
+    with pytest.raises(ConfigError, match="train.loss=deltaflow"):
+        load_config(None, ["train.loss=deltaflow", "data.source=pair_records", "data.labels=pseudo"])
+    cfg = load_config(None, ["model.head=gru", "train.loss=deflow", "data.source=pair_records", "data.labels=pseudo"])
+    assert (cfg.model.head, cfg.model.gru_iterations, cfg.train.loss) == ("gru", 4, "deflow")

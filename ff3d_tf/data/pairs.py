@@ -83,7 +83,10 @@ def _keep(ex: dict, keep_t0, keep_tm1) -> dict:
 
 
 def raw_pair_config(cfg: ExperimentConfig) -> ExperimentConfig:
-    """`cfg` with every study off and no crop: pairs as pair records store them (the reader applies `cfg`'s)."""
+    """`cfg` with every study off (class ablation, point density, ground removal, no ego-motion compensation), no
+    crop, and a WOD source with human labels: `make_pair` keeps every point of both clouds. Pair records store pairs
+    so (their reader applies `cfg`'s studies), and predictions on a user's own clouds pair them so (one output row
+    per point of the t0 file)."""
     import dataclasses
     data = dataclasses.replace(cfg.data, source="wod", labels="human", crop_to_grid=False, class_ablation="none",
                                point_keep_fraction=1.0, remove_ground_below_z_m=None, ego_motion_compensation=True)
@@ -274,13 +277,12 @@ def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_
             for k in (k for k in keys if k in batch):
                 v = batch[k]
                 paddings = [[0, 0], [0, target - n]] + [[0, 0]] * (len(v.shape) - 2)
-                out[k] = tf.pad(v, paddings, constant_values=-1 if k in ("class_id_t0", "category_t0") else
-                                tf.zeros([], v.dtype))
+                out[k] = tf.pad(v, paddings, constant_values=tf.cast(schema.POINT_KEYS[k].padding, v.dtype))
             out[f"point_mask_{suffix}"] = tf.sequence_mask(batch[f"num_points_{suffix}"], target)
-        # padded_batch fills class ids with 0 (background); the masks say what is real, and class of padding is -1.
-        for k in ("class_id_t0", "category_t0"):
-            if k in out:
-                out[k] = tf.where(out["point_mask_t0"], out[k], -1)
+            # padded_batch fills with 0 (a class id's background); the masks say what is real
+            for k in (k for k in keys if k in out and schema.POINT_KEYS[k].padding != 0):
+                out[k] = tf.where(out[f"point_mask_{suffix}"], out[k], tf.cast(schema.POINT_KEYS[k].padding,
+                                                                              out[k].dtype))
         return out
 
     return ds.map(pad, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)

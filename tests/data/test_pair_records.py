@@ -173,7 +173,8 @@ def _fake_pair(n0=5, n1=4):
             "pseudo_valid_t0": np.array([True, True, False, True, True]),
             "is_ground_t0": np.array([True, False, False, True, False]),
             "is_ground_tm1": np.array([False, True, True, False]),
-            "category_t0": np.array([-1, 3, 3, 0, -1], np.int32), pair_records.TIMESTAMP_KEY: 315966265259836000,
+            "category_t0": np.array([-1, 3, 3, 0, -1], np.int32),
+            "instance_id_t0": np.array([-1, 0, 0, 1, -1], np.int32), pair_records.TIMESTAMP_KEY: 315966265259836000,
             pair_records.PARTNER_TIMESTAMP_KEY: 315966265360032000, pair_records.SEQUENCE_KEY: "log"}
 
 
@@ -204,8 +205,9 @@ def test_extras_round_trip_and_are_masked_and_padded_with_their_points(tiny_conf
                                     extras=("category_t0", "is_ground_tm1")))[0]
     np.testing.assert_array_equal(cut["category_t0"], ex["category_t0"][ex["points_xyz_t0"][:, 2] >= 0.0])
     np.testing.assert_array_equal(cut["is_ground_tm1"], ex["is_ground_tm1"][ex["points_xyz_tm1_in_t0"][:, 2] >= 0.0])
-    batch = next(iter(pairs.batch_examples(pairs.pair_dataset([path], cfg, extras=("category_t0", "is_ground_t0",
-                                                                                   "is_ground_tm1")), 1, 8)))
+    batch = next(iter(pairs.batch_examples(pairs.pair_dataset([path], cfg, extras=(
+        "category_t0", "instance_id_t0", "is_ground_t0", "is_ground_tm1")), 1, 8)))
+    np.testing.assert_array_equal(batch["instance_id_t0"].numpy()[0], [-1, 0, 0, 1, -1, -1, -1, -1])
     assert batch["category_t0"].shape == (1, 8) and batch["is_ground_tm1"].shape == batch["point_mask_tm1"].shape
     np.testing.assert_array_equal(batch["category_t0"].numpy()[0], [-1, 3, 3, 0, -1, -1, -1, -1])
     np.testing.assert_array_equal(batch["is_ground_t0"].numpy()[0, 5:], False)
