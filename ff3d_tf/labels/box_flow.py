@@ -93,7 +93,7 @@ def points_in_boxes(points_xyz: np.ndarray, boxes: dict, tolerance_m: float = 1e
 
 
 def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose_tm1, dt_s: float, *,
-                   tolerance_m: float = 1e-4, enlarge_m=(0.0, 0.0, 0.0)):
+                   tolerance_m: float = 1e-4, enlarge_m=(0.0, 0.0, 0.0), with_instances: bool = False):
     """Per-point flow (m/s, vehicle frame at t0) and class from tracked boxes.
 
     Args:
@@ -105,8 +105,10 @@ def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose
       dt_s: t0 - t-1 in seconds (non-zero; negative when the other frame is later).
       tolerance_m: a point this close outside a face still counts as on it (float rounding of stored points).
       enlarge_m: added to (length, width, height) before the inside test (e.g. Argoverse's 0.2 m cuboid margin).
+      with_instances: also return each point's box (`instance_id_t0` of the pair records).
     Returns:
-      flow_mps float32 [N,3], class_id int32 [N].
+      flow_mps float32 [N,3], class_id int32 [N]; with `with_instances`, instance_id int32 [N]: the index of the t0
+      box the point is in (the lowest where boxes overlap, as for its flow and class), -1 for none.
     """
     if dt_s == 0:
         raise ValueError("bootstrap_flow: dt_s must be non-zero")
@@ -114,9 +116,9 @@ def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose
     n = len(pts)
     flow = np.zeros((n, 3), np.float32)
     cls = np.full(n, schema.CLASS_BACKGROUND, np.int32)
-    if len(boxes_t0["heading"]) == 0:
-        return flow, cls
     owner = points_in_boxes(pts, boxes_t0, tolerance_m, enlarge_m)
+    if len(boxes_t0["heading"]) == 0:
+        return (flow, cls, owner) if with_instances else (flow, cls)
     k = len(boxes_t0["heading"])
     b_t0 = geometry.box_matrices_np(np.asarray(boxes_t0["center"], np.float64), np.asarray(boxes_t0["heading"], np.float64))
     tm1_index = {str(t): i for i, t in enumerate(boxes_tm1["track_id"])}
@@ -137,7 +139,7 @@ def bootstrap_flow(points_xyz_t0, boxes_t0: dict, boxes_tm1: dict, pose_t0, pose
     p0 = pts[inside]
     flow[inside] = (a[box, :, 0] * p0[:, :1] + a[box, :, 1] * p0[:, 1:2] + a[box, :, 2] * p0[:, 2:3] + c[box])
     cls[inside] = np.where(match >= 0, np.asarray(boxes_t0["class_id"], np.int32), schema.CLASS_NO_LABEL)[box]
-    return flow, cls
+    return (flow, cls, owner) if with_instances else (flow, cls)
 
 
 def boxes_from_wod_labels(laser_labels) -> dict:

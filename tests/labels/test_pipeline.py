@@ -28,6 +28,11 @@ def test_by_hand():
                     [30, 30, 0]], np.float32)  # background
     flow, cls = bootstrap_flow(pts, b0, b1, pose_t0, pose_tm1, 0.1)
     assert cls.tolist() == [1, 1, -1, 0]
+    # instances: the t0 box each point is in (box 1 has no t-1 match but is still an instance), -1 outside
+    _, _, instance_id = bootstrap_flow(pts, b0, b1, pose_t0, pose_tm1, 0.1, with_instances=True)
+    assert instance_id.tolist() == [0, 0, 1, -1] and instance_id.dtype == np.int32
+    _, _, no_boxes = bootstrap_flow(pts, _boxes([], [], [], []), b1, pose_t0, pose_tm1, 0.1, with_instances=True)
+    assert no_boxes.tolist() == [-1, -1, -1, -1]
     np.testing.assert_allclose(flow, [[5, 0, 0], [5, 0, 0], [0, 0, 0], [0, 0, 0]], atol=1e-5)
     # Rotation: the car turned by +0.1 rad about its centre between t-1 and t0 (ego static). A point 2 m ahead of
     # the centre moved from the centre + 2*(cos(-0.1), sin(-0.1)) at t-1 to centre + (2, 0) at t0.
