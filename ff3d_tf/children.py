@@ -43,9 +43,12 @@ def child_environment(cores: int | None = None, env: dict | None = None, base: d
 
 
 def run_child(function: str, kwargs: dict | None = None, *, cores: int | None = None, env: dict | None = None,
-              timeout_s: float | None = None, what: str | None = None, on_error: str = "raise") -> dict:
+              base: dict | None = None, timeout_s: float | None = None, what: str | None = None,
+              on_error: str = "raise") -> dict:
     """The dict `function(**kwargs)` returns, computed in a fresh process (module docstring). `function`:
-    "ff3d_tf.module:name". `what`: how errors name this measurement (default: `function`)."""
+    "ff3d_tf.module:name". `base`: the child's whole environment before `env` and the core settings (default: this
+    process's; a study whose variants must not inherit the caller's settings passes its own). `what`: how errors
+    name this measurement (default: `function`)."""
     _split(function)
     if on_error not in ("raise", "record"):
         raise ValueError(f"on_error={on_error!r}: 'raise' or 'record'")
@@ -55,7 +58,7 @@ def run_child(function: str, kwargs: dict | None = None, *, cores: int | None = 
         spec = {"function": function, "kwargs": kwargs or {}, "cores": cores, "out": out}
         cmd = [sys.executable, "-c", f"from {PACKAGE} import children; children.main()", json.dumps(spec)]
         try:
-            proc = subprocess.run(cmd, env=child_environment(cores, env), cwd=ROOT, capture_output=True, text=True,
+            proc = subprocess.run(cmd, env=child_environment(cores, env, base), cwd=ROOT, capture_output=True, text=True,
                                   timeout=timeout_s)
             failure = None if proc.returncode == 0 else \
                 f"{what}: its process ended with exit {proc.returncode}:\n{_tail(proc.stdout + proc.stderr)}"

@@ -490,6 +490,15 @@ def _set_dotted(tree: dict[str, Any], dotted: str, value: Any) -> None:
     node[parts[-1]] = value
 
 
+# The smallest model of the paper's structure on a small grid: the tests' and the soak job's model (`load_config(None,
+# TINY_OVERRIDES)`), quick to build, train and export on one CPU core.
+TINY_OVERRIDES = ("grid.num_pillars_x=32", "grid.num_pillars_y=32", "grid.x_range_m=[-40, 40]",
+                  "grid.y_range_m=[-40, 40]", "model.point_feature_dim=16", "model.encoder_widths=[16, 24, 32]",
+                  "model.encoder_depths=[2, 2, 2]", "model.decoder_dims=[[24, 24], [24, 16], [16, 16]]",
+                  "model.head_hidden_dim=8", "data.point_bucket_base=1024", "train.global_batch_size=2",
+                  "train.learning_rate=1e-3", "data.shuffle_buffer=4")
+
+
 def load_config(path: str | None = None, overrides: list[str] | tuple[str, ...] = ()) -> ExperimentConfig:
     """Defaults <- YAML file (overrides only) <- `key=value` overrides; validated before it is returned."""
     tree: dict[str, Any] = {}

@@ -31,12 +31,8 @@ def tiny_records(tiny_segment):
     return [r for _, r in waymo.iterate_records(tiny_segment)]
 
 
-# Config overrides of a tiny model for tests (also passed to the tools as --set).
-TINY_OVERRIDES = ("grid.num_pillars_x=32", "grid.num_pillars_y=32", "grid.x_range_m=[-40, 40]",
-                  "grid.y_range_m=[-40, 40]", "model.point_feature_dim=16", "model.encoder_widths=[16, 24, 32]",
-                  "model.encoder_depths=[2, 2, 2]", "model.decoder_dims=[[24, 24], [24, 16], [16, 16]]",
-                  "model.head_hidden_dim=8", "data.point_bucket_base=1024", "train.global_batch_size=2",
-                  "train.learning_rate=1e-3", "data.shuffle_buffer=4")
+# The tiny model of the tests (also passed to the tools as --set).
+from ff3d_tf.config import TINY_OVERRIDES  # noqa: E402
 
 
 @pytest.fixture(scope="session")

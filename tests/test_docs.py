@@ -672,7 +672,17 @@ def _gpu_ref(precision, fmt):
     return V(_GPU, f"latency[points=32000,precision={precision}]/reference/max_abs_flow_diff_mps", fmt)
 
 
+_SUB = "av2_submission.json"
+
 QUOTES = (
+    Quote("docs/datasets.md", "On the sample log's first sweep ({} points, `benchmarks/av2_submission.json`), "
+                              "av2-api's rule keeps {} points with Argoverse's own ground labels and {} with the "
+                              "records' ground ({} point is ground in one and not the other), and the protocol's 35 m "
+                              "mask (`metrics_av2.eval_mask`) keeps {}:",
+          (V(_SUB, "first_sweep_points", "{:,}"), V(_SUB, "rows_first_sweep/av2_api_rule/labels_ground", "{:,}"),
+           V(_SUB, "rows_first_sweep/av2_api_rule/records_ground", "{:,}"),
+           V(_SUB, "ground_points_records_vs_labels_differ"),
+           V(_SUB, "rows_first_sweep/project_35m/records_ground", "{:,}"))),
     Quote(B, "oneDNN makes the training step {} faster than Eigen's kernels",
           (V(_DNN, "summary/avx2_onednn_speedup/train_step_ms", "{:.1f}x"),)),
     Quote("README.md", "the model exactly as the paper's architecture table ({} parameters)",

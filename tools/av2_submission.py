@@ -1,27 +1,33 @@
-"""Write an Argoverse 2 scene-flow challenge submission (av2-api SUBMISSION_FORMAT.md) for a split, and check it.
+"""Write an Argoverse 2 scene-flow submission in a leaderboard's layout, over the official masks, and check it.
 
-python tools/av2_submission.py --checkpoint M --data_dir AV2_RECORDS --out submission.zip [--config C] [--set ...]
+python tools/av2_submission.py --leaderboard v1|v2|v3 --split test --masks test-masks.zip --checkpoint M
+    --data_dir AV2_RECORDS --out submission.zip [--format_json test_submission_format.json] [--config C] [--set ...]
 AV2_RECORDS: `tools/write_pair_records.py --source av2 --input <split> --out_dir AV2_RECORDS` (each sweep paired with
-the next one). One folder per log, one `<timestamp_ns>.feather` per evaluated sweep with flow_tx_m, flow_ty_m,
-flow_tz_m (float16, metres to the next sweep, ego motion included, first sweep's ego frame) and is_dynamic (bool),
-one row per eval-mask point (not ground, max(|x|, |y|) < 35 m) in point order; zipped, then the archive is read back
-and checked against the format and the expected row counts before the tool says done. Sweeps already written under
-<out>.parts/ are kept, so an interrupted run resumes. `--ground_truth` writes the records' own labels instead of a
-model's flow (a check of the pipeline: it scores ~0).
+the next one). --masks: Argoverse's official `{val,test}-masks.zip` (`<log_id>/<timestamp_ns>.feather`, one boolean
+column over every point of the sweep), from s3://argoverse/tasks/3d_scene_flow/zips/: it chooses the sweeps (v1, v3)
+and v1's rows; a sweep of it without a record, or with another point count, stops the tool naming both. Without it a
+test split is refused; a val split falls back to av2-api's rule (every 5th pair; |x|, |y| <= 50 m, not ground), for
+local validation only. The layouts (`ff3d_tf.data.av2.av2_submission.LAYOUTS`, docs/datasets.md):
+  v1  av2-api (2023): <log_id>/<timestamp_ns>.feather, flow_tx_m, flow_ty_m, flow_tz_m float16 with the ego motion,
+      is_dynamic bool, one row per mask point
+  v2  bucketed_scene_flow_eval (2024): metadata.json and <log_id>/<sweep index:010d>.feather for sweep indices
+      0, 5, 10, ... of each log, is_valid and the ego-motion-free flow (float16) of every point
+  v3  the 2026 leaderboard (OpenSceneFlow's writer): the masks' sweeps, the ego-motion-free flow (float16) of every
+      point, nothing else
+The archive is read back and checked (and against --format_json, av2-api's `{val,test}_submission_format.json`:
+entries and, for v1, row counts) before the tool says done. Sweeps already written under <out>.parts/ are kept, so an
+interrupted run resumes. `--ground_truth` writes the records' own labels instead of a model's flow (a check of the
+pipeline: it scores ~0, float16 rounding).
 """
-import os
 import sys
-import time
 
 import _common
 
 import numpy as np
 
-from ff3d_tf import geometry, metrics_av2
-from ff3d_tf.data import pair_records
 from ff3d_tf.data.av2 import av2_submission
 from ff3d_tf.data.pairs import list_segment_files
-from ff3d_tf.training.evaluation import av2_challenge_examples, challenge_flow_m
+from ff3d_tf.training.evaluation import write_av2_submission
 
 
 class _LabelsAsPrediction:
@@ -39,41 +45,37 @@ def main():
     src.add_argument("--checkpoint", help="model_dir, checkpoint prefix, SavedModel directory, .onnx file or "
                                           "portable XLA export directory")
     src.add_argument("--ground_truth", action="store_true", help="submit the records' labels (pipeline check)")
+    p.add_argument("--leaderboard", required=True, choices=sorted(av2_submission.LAYOUTS),
+                   help="v1: av2-api 2023; v2: bucketed_scene_flow_eval 2024; v3: the 2026 leaderboard")
+    p.add_argument("--split", required=True, choices=("val", "test"))
+    p.add_argument("--masks", help="the official {val,test}-masks.zip (required for test)")
+    p.add_argument("--format_json", help="av2-api's {val,test}_submission_format.json, checked against (v1, v3)")
+    p.add_argument("--self_supervised", action="store_true", help="v2's metadata.json: the model trained without "
+                                                                  "human labels")
     p.add_argument("--out", required=True, help="the submission .zip")
-    p.add_argument("--max_pairs", type=int, default=0)
+    p.add_argument("--max_pairs", type=int, default=0, help="the first N sweeps only: a partial archive (a check)")
     args = p.parse_args()
     cfg = _common.load(args)
     from ff3d_tf.config import replace_config
     cfg = replace_config(cfg, {"data.source": "pair_records"})
-    files = list_segment_files(args.data_dir)
     if args.ground_truth:
         predictor = _LabelsAsPrediction()
     else:
         from ff3d_tf.inference.predictor import load_predictor
         predictor = load_predictor(cfg, args.checkpoint)
-    parts = args.out + ".parts"
-    expected, t0 = {}, time.time()
-    for ex, flow_pred, _, mask in av2_challenge_examples(cfg, files, predictor, args.max_pairs,
-                                                         log_fn=lambda s: print(s, flush=True)):
-        log_id = ex[pair_records.SEQUENCE_KEY].decode()
-        timestamp_ns = int(ex[pair_records.TIMESTAMP_KEY])
-        expected[(log_id, timestamp_ns)] = int(mask.sum())
-        path = os.path.join(parts, *av2_submission.sweep_entry(log_id, timestamp_ns).split("/"))
-        if os.path.exists(path):
-            continue  # written by an interrupted run
-        flow_m = challenge_flow_m(flow_pred, ex)  # ego-free, metres to the next sweep, sweep-t frame
-        ego1_from_ego0 = geometry.t0_from_tm1_np(ex["pose_tm1"], ex["pose_t0"])  # sweep t -> next sweep's frame
-        flow_av2 = av2_submission.av2_flow_from_ego_free(ex["points_xyz_t0"], flow_m, ego1_from_ego0)
-        av2_submission.write_sweep(parts, log_id, timestamp_ns, flow_av2[mask], metrics_av2.is_dynamic(flow_m)[mask])
-    print(f"{len(expected)} sweeps predicted in {time.time() - t0:.0f} s; zipping and checking {args.out}",
-          flush=True)
-    summary = av2_submission.make_archive(parts, args.out, expected)
+    summary = write_av2_submission(cfg, list_segment_files(args.data_dir), predictor, args.out, args.leaderboard,
+                                   args.split, masks=args.masks, format_json=args.format_json,
+                                   max_pairs=args.max_pairs, supervised=not args.self_supervised,
+                                   log_fn=lambda s: print(s, flush=True))
+    for note in summary["notes"]:
+        print(note, file=sys.stderr)
     print(f"done: {args.out} holds {summary['sweeps']} sweeps of {summary['logs']} logs, {summary['rows']} rows, "
-          "checked against the submission format")
+          f"layout {summary['leaderboard']} ({summary['selection']}), checked against the layout"
+          + (" and " + args.format_json if args.format_json else ""))
 
 
 if __name__ == "__main__":
     try:
         _common.run(main)
-    except av2_submission.SubmissionFormatError as e:
+    except (av2_submission.SubmissionFormatError, ValueError) as e:
         sys.exit(f"error: {e}")

@@ -5,11 +5,15 @@ python tools/eval.py --config C --data_dir VAL --checkpoint MODEL [--out_dir O]
     (tools/export_onnx.py) or a portable XLA export directory (tools/export_xla.py, batch 1): what the path holds
     chooses the runtime (ff3d_tf/inference/predictor.py).
 python tools/eval.py --protocol av2 --set data.source=pair_records --data_dir AV2_VAL_RECORDS --checkpoint M
+    [--masks val-masks.zip]
     (the Argoverse 2 2024 challenge: three-way and bucketed normalized EPE in metres per frame over the eval mask,
-    35 m box, no ground; and the paper's tables in m/s on the same points. Records: tools/write_pair_records.py)
+    35 m box, no ground; and the paper's tables in m/s on the same points. Records: tools/write_pair_records.py.
+    --masks, Argoverse's official {val,test}-masks.zip: exactly its sweeps and the points its masks select, the
+    points a leaderboard scores; a sweep of it without a record of as many points stops the tool naming both)
 """
 import json
 import os
+import sys
 
 import _common
 
@@ -17,6 +21,7 @@ from ff3d_tf import metrics as M
 from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.inference.predictor import load_predictor
 from ff3d_tf import metrics_av2
+from ff3d_tf.data.av2.av2_submission import SubmissionFormatError
 from ff3d_tf.training.evaluation import evaluate, evaluate_av2, write_results
 
 
@@ -29,7 +34,10 @@ def main():
                                                    "(default: --checkpoint, or the folder of a prefix or file)")
     p.add_argument("--max_pairs", type=int, default=0)
     p.add_argument("--protocol", choices=("paper", "av2"), default="paper")
+    p.add_argument("--masks", help="--protocol av2: the official {val,test}-masks.zip, whose points are scored")
     args = p.parse_args()
+    if args.masks and args.protocol != "av2":
+        p.error("--masks needs --protocol av2")
     cfg = _common.load(args)
     files = list_segment_files(args.data_dir)
     predictor = load_predictor(cfg, args.checkpoint)
@@ -37,7 +45,7 @@ def main():
     out_dir = args.out_dir or (args.checkpoint if tf.io.gfile.isdir(args.checkpoint) else
                                os.path.dirname(args.checkpoint))
     if args.protocol == "av2":
-        return _av2(cfg, files, predictor, args.max_pairs, out_dir)
+        return _av2(cfg, files, predictor, args.max_pairs, out_dir, args.masks)
     result, zero = evaluate(cfg, files, predictor, max_pairs=args.max_pairs,
                             log_fn=lambda s: print(s, flush=True))
     print(M.format_paper_table(result, "FastFlow3D (this checkpoint), mean L2 error"))
@@ -49,8 +57,13 @@ def main():
     print(f"wrote {out_dir}/metrics.json, metrics_zero_flow.json, metrics.csv")
 
 
-def _av2(cfg, files, predictor, max_pairs, out_dir):
-    r = evaluate_av2(cfg, files, predictor, max_pairs=max_pairs, log_fn=lambda s: print(s, flush=True))
+def _av2(cfg, files, predictor, max_pairs, out_dir, masks):
+    try:
+        r = evaluate_av2(cfg, files, predictor, max_pairs=max_pairs, log_fn=lambda s: print(s, flush=True),
+                         masks=masks)
+    except SubmissionFormatError as e:
+        sys.exit(f"error: {e}")
+    print(f"points scored: {r['points']}")
     print(metrics_av2.format_challenge_table(r["model"], "FastFlow3D (this checkpoint)"))
     print()
     print(metrics_av2.format_challenge_table(r["zero_flow"], "zero flow"))

@@ -1,8 +1,9 @@
 """Evaluation over validation records: the model and the zero-flow baseline side by side.
 
 The one evaluation path of any `ff3d_tf.predictor.Predictor` (a checkpoint, a SavedModel, an ONNX file, a portable
-XLA export): `evaluate` (the paper's tables), `evaluate_av2` (the Argoverse 2 challenge), and the Trainer's periodic
-evaluation (`evaluate` on a few pairs, `write_summaries` to TensorBoard).
+XLA export): `evaluate` (the paper's tables), `evaluate_av2` (the Argoverse 2 challenge, on its official masks when
+given), `write_av2_submission` (an Argoverse 2 leaderboard archive, `ff3d_tf.data.av2.av2_submission`), and the
+Trainer's periodic evaluation (`evaluate` on a few pairs, `write_summaries` to TensorBoard).
 """
 from __future__ import annotations
 
@@ -13,9 +14,10 @@ import time
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf import metrics_av2, schema
+from ff3d_tf import geometry, metrics_av2, schema
 from ff3d_tf.config import ExperimentConfig, replace_config
 from ff3d_tf.data import pair_records, pairs
+from ff3d_tf.data.av2 import av2_submission
 from ff3d_tf.metrics import AV2_MAX_DISTANCE_M, CROP_PREFIX, SceneFlowMetrics, published_epe_keys
 from ff3d_tf.predictor import Predictor
 
@@ -89,14 +91,8 @@ def challenge_flow_m(flow_mps, example: dict) -> np.ndarray:
     return -np.asarray(flow_mps, np.float64) * dt_s
 
 
-def av2_challenge_examples(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
-                           log_fn=print):
-    """(example, predicted m/s, prediction valid, eval mask) per pair of Argoverse 2 challenge records, in order.
-
-    Every point is kept (no grid crop: the challenge scores every eval-mask point; a point the model cannot see gets
-    flow 0). Raises ValueError unless `files` are Argoverse 2 records paired with the next sweep
-    (`tools/write_pair_records.py --source av2`).
-    """
+def _check_av2_records(cfg: ExperimentConfig, files: list[str]) -> None:
+    """Raises ValueError unless `files` are Argoverse 2 records paired with the next sweep, read as pair records."""
     if cfg.data.source != "pair_records":
         raise ValueError("the Argoverse 2 protocol reads pair records: --set data.source=pair_records and "
                          "--data_dir of `tools/write_pair_records.py --source av2`")
@@ -105,9 +101,58 @@ def av2_challenge_examples(cfg: ExperimentConfig, files: list[str], predictor: P
         raise ValueError(f"{os.path.dirname(files[0])}: records of {manifest.source} paired with the "
                          f"{manifest.partner} sweep; the Argoverse 2 protocol needs Argoverse 2 records paired with "
                          "the next sweep (tools/write_pair_records.py --source av2)")
+
+
+def list_av2_record_sweeps(cfg: ExperimentConfig, files: list[str]) -> list[av2_submission.RecordSweep]:
+    """The first sweep of every pair record of `files` (log, timestamp, next sweep's timestamp, point count, file),
+    read from the records' scalar fields only (no point array is decoded), in file order."""
+    _check_av2_records(cfg, files)
+    spec = {pair_records.SEQUENCE_KEY: tf.io.FixedLenFeature([], tf.string),
+            **{k: tf.io.FixedLenFeature([], tf.int64) for k in (pair_records.TIMESTAMP_KEY,
+                                                                pair_records.PARTNER_TIMESTAMP_KEY, "num_points_t0")}}
+    out = []
+    with pairs.input_errors_named(files):
+        for path in files:
+            ds = tf.data.TFRecordDataset(path, compression_type=_compression(path)).map(
+                lambda record: tf.io.parse_single_example(record, spec))
+            for f in ds.as_numpy_iterator():
+                out.append(av2_submission.RecordSweep(
+                    f[pair_records.SEQUENCE_KEY].decode(), int(f[pair_records.TIMESTAMP_KEY]),
+                    int(f[pair_records.PARTNER_TIMESTAMP_KEY]), int(f["num_points_t0"]), path))
+    if not out:
+        raise ValueError(f"no pairs in {files}")
+    return out
+
+
+def _sweep_name(log_id, timestamp_ns):
+    """A sweep's key as one string, <log_id>/<timestamp_ns> (of tensors or of Python values)."""
+    if isinstance(log_id, str):
+        return f"{log_id}/{int(timestamp_ns)}"
+    return tf.strings.join([log_id, "/", tf.strings.as_string(timestamp_ns)])
+
+
+def av2_challenge_examples(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
+                           log_fn=print, sweeps: set[tuple[str, int]] | None = None):
+    """(example, predicted m/s, prediction valid, 35 m eval mask) per pair of Argoverse 2 challenge records, in order;
+    with `sweeps` ({(log_id, timestamp_ns)}) only those pairs (the others are never given to the predictor).
+
+    Every point is kept (no grid crop: the challenge scores every eval-mask point; a point the model cannot see gets
+    flow 0). Raises ValueError unless `files` are Argoverse 2 records paired with the next sweep
+    (`tools/write_pair_records.py --source av2`).
+    """
+    _check_av2_records(cfg, files)
+    if sweeps is not None and not sweeps:
+        return
     cfg = replace_config(cfg, {"data.crop_to_grid": False, "data.labels": "human"})
-    total = count_pairs(files) if not max_pairs else min(count_pairs(files), max_pairs)
+    total = count_pairs(files) if sweeps is None else len(sweeps)
+    total = min(total, max_pairs) if max_pairs else total
     ds = pairs.pair_dataset(files, cfg, extras=schema.AV2_EVAL_KEYS, metadata=True)
+    if sweeps is not None:
+        names = sorted(_sweep_name(*k) for k in sweeps)
+        table = tf.lookup.StaticHashTable(tf.lookup.KeyValueTensorInitializer(
+            tf.constant(names), tf.ones(len(names), tf.int32)), default_value=0)
+        ds = ds.filter(lambda ex: table.lookup(_sweep_name(ex[pair_records.SEQUENCE_KEY],
+                                                           ex[pair_records.TIMESTAMP_KEY])) == 1)
     if max_pairs:
         ds = ds.take(max_pairs)
     t0, done = time.time(), 0
@@ -120,28 +165,164 @@ def av2_challenge_examples(cfg: ExperimentConfig, files: list[str], predictor: P
             yield ex, np.where(valid[:, None], np.asarray(flow_pred), 0.0), valid, mask
             done += 1
             _log_progress(done, total, t0, log_fn)
-    if done == 0:
+    if done == 0 and sweeps is None:
         raise ValueError(f"no pairs in {files}")
 
 
+def _sweep_key(example: dict) -> tuple[str, int]:
+    log_id = example[pair_records.SEQUENCE_KEY]
+    return (log_id.decode() if isinstance(log_id, bytes) else str(log_id)), int(example[pair_records.TIMESTAMP_KEY])
+
+
 def evaluate_av2(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
-                 log_fn=print) -> dict:
+                 log_fn=print, masks: str | None = None) -> dict:
     """The Argoverse 2 2024 challenge's numbers (`metrics_av2`: three-way EPE, bucketed normalized EPE; metres per
-    frame) of the model and of zero flow over the eval-mask points of every pair, and the paper's tables (m/s) on
-    the same points. Returns {"model": ..., "zero_flow": ..., "paper_model": ..., "paper_zero_flow": ...,
-    "points_without_prediction": n (eval-mask points outside the model's grid, scored with flow 0)}."""
+    frame) of the model and of zero flow, and the paper's tables (m/s) on the same points.
+
+    The points: without `masks`, those of `metrics_av2.eval_mask` (not ground, 35 m box) of every pair; with `masks`
+    (the official `{val,test}-masks.zip`, `av2_submission.MaskArchive`), exactly the archive's sweeps and the points
+    its masks select, as the leaderboard scores them (every sweep of the archive needs a record of as many points).
+    Returns {"model": ..., "zero_flow": ..., "paper_model": ..., "paper_zero_flow": ..., "points_without_prediction":
+    n (scored points outside the model's grid, scored with flow 0), "points": what chose the points}."""
     acc, acc_zero = metrics_av2.AV2FlowAccumulator(), metrics_av2.AV2FlowAccumulator()
     paper, paper_zero = SceneFlowMetrics(), SceneFlowMetrics()
     unseen = 0
-    for ex, flow_pred, valid, mask in av2_challenge_examples(cfg, files, predictor, max_pairs, log_fn):
-        true_m = challenge_flow_m(ex["flow_mps_t0"], ex)
-        acc.update(true_m, challenge_flow_m(flow_pred, ex), ex["category_t0"], mask)
-        acc_zero.update(true_m, np.zeros_like(true_m), ex["category_t0"], mask)
-        for m, flow in ((paper, flow_pred), (paper_zero, np.zeros_like(flow_pred))):
-            m.update_state(ex["flow_mps_t0"], flow.astype(np.float32), ex["class_id_t0"], point_valid=mask)
-        unseen += int(np.sum(mask & ~valid))
+    archive, records, sweeps = None, {}, None
+    if masks is not None:
+        archive = av2_submission.MaskArchive(masks)
+        plan = av2_submission.plan_submission(av2_submission.LAYOUTS["v1"], list_av2_record_sweeps(cfg, files),
+                                              archive)  # every sweep of the masks has a record of its length
+        records = {(p.log_id, p.timestamp_ns): p for p in plan}
+        sweeps = set(records)
+    try:
+        for ex, flow_pred, valid, mask in av2_challenge_examples(cfg, files, predictor, max_pairs, log_fn, sweeps):
+            if archive is not None:
+                key = _sweep_key(ex)
+                mask = archive.checked_mask(key, len(ex["points_xyz_t0"]), records[key].where)
+            true_m = challenge_flow_m(ex["flow_mps_t0"], ex)
+            acc.update(true_m, challenge_flow_m(flow_pred, ex), ex["category_t0"], mask)
+            acc_zero.update(true_m, np.zeros_like(true_m), ex["category_t0"], mask)
+            for m, flow in ((paper, flow_pred), (paper_zero, np.zeros_like(flow_pred))):
+                m.update_state(ex["flow_mps_t0"], flow.astype(np.float32), ex["class_id_t0"], point_valid=mask)
+            unseen += int(np.sum(mask & ~valid))
+    finally:
+        if archive is not None:
+            archive.close()
     return {"model": acc.result(), "zero_flow": acc_zero.result(), "paper_model": paper.result(),
-            "paper_zero_flow": paper_zero.result(), "points_without_prediction": unseen}
+            "paper_zero_flow": paper_zero.result(), "points_without_prediction": unseen,
+            "points": f"official masks {masks}" if masks else "metrics_av2.eval_mask (not ground, 35 m box)"}
+
+
+class _Skipping:
+    """A predictor that leaves out the sweeps `skip` ({(log_id, timestamp_ns)}): zero flow, nothing predicted."""
+
+    def __init__(self, predictor: Predictor, skip: set):
+        self.predictor, self.skip = predictor, skip
+
+    def predict(self, batch, example):
+        if self.skip and _sweep_key({k: getattr(example[k], "numpy", lambda v=example[k]: v)() for k in (
+                pair_records.SEQUENCE_KEY, pair_records.TIMESTAMP_KEY)}) in self.skip:
+            n = int(example["num_points_t0"])
+            return np.zeros((n, 3), np.float32), np.ones(n, bool)
+        return self.predictor.predict(batch, example)
+
+
+def write_av2_submission(cfg: ExperimentConfig, files: list[str], predictor: Predictor, out_zip: str,
+                         leaderboard: str, split: str, masks: str | None = None, format_json: str | None = None,
+                         max_pairs: int = 0, supervised: bool = True, log_fn=print) -> dict:
+    """An Argoverse 2 scene-flow submission of `predictor` over the records `files`, in the layout of `leaderboard`
+    ("v1", "v2", "v3": `av2_submission.LAYOUTS`), zipped to `out_zip`, read back and checked before it is returned.
+
+    `masks`: the official `{split}-masks.zip`, which chooses the sweeps (v1, v3) and v1's rows; every sweep of it needs
+    a record of as many points (errors name both). Without it a "test" split is refused; a "val" split falls back to
+    av2-api's rule (`av2_submission.av2_api_rule_subset`, `av2_api_rule_mask`), for local validation only.
+    `format_json`: av2-api's `{split}_submission_format.json`, whose entries (and, for v1, row counts) the archive
+    must match. `supervised`: v2's metadata.json. `max_pairs`: the first planned sweeps only (a partial archive, a
+    check of the pipeline, never a submission). Sweeps already written under `<out_zip>.parts/` are kept (resume).
+    Returns the archive's summary ({"sweeps", "rows", "logs"}) with "leaderboard", "selection" (what chose sweeps
+    and rows), "partial" and "notes"."""
+    lay = av2_submission.layout(leaderboard)
+    if split not in ("val", "test"):
+        raise ValueError(f"split {split!r}: expected val or test")
+    if masks is None and split == "test":
+        raise ValueError("a test submission needs the official masks (--masks TEST_MASKS.zip): the leaderboards "
+                         f"evaluate their points only; {av2_submission.MASKS_SOURCE}")
+    notes = []
+    archive = av2_submission.MaskArchive(masks) if masks else None
+    try:
+        plan = av2_submission.plan_submission(lay, list_av2_record_sweeps(cfg, files), archive)
+        if not lay.masks_choose_sweeps:
+            selection = "the 2024 evaluator's sweeps (indices 0, 5, 10, ... of each log), every point" + (
+                f"; logs and point counts checked against {masks}" if masks else "")
+        elif archive is not None:
+            selection = f"the sweeps{' and rows' if lay.mask_rows else ''} of the official masks {masks}"
+        else:
+            selection = "av2-api's rule as this project computes it, for local validation only"
+            rows = " and rows (|x|, |y| <= 50 m, not ground)" if lay.mask_rows else ""
+            notes.append(f"NOTE: no --masks: the sweeps (every 5th pair){rows} follow av2-api's rule as this project "
+                         "computes it, for local validation only; a leaderboard checks the official masks' sweeps "
+                         f"and row counts ({av2_submission.MASKS_SOURCE})")
+        if max_pairs:
+            plan = plan[:max_pairs]
+            notes.append(f"NOTE: --max_pairs {max_pairs}: a partial archive of {len(plan)} sweeps, not a submission")
+        for note in notes:
+            log_fn(note)
+        format_rows = None
+        if format_json:
+            format_rows = av2_submission.expected_counts_from_json(format_json)
+            if max_pairs:
+                format_rows = {e: n for e, n in format_rows.items() if e in {p.entry for p in plan}}
+            av2_submission.check_against_format_json(lay, {p.entry: p.rows for p in plan}, format_rows, format_json)
+        parts = out_zip + ".parts"
+        expected, todo, kept = {}, {}, {}
+        for p in plan:
+            path = os.path.join(parts, *p.entry.split("/"))
+            if not os.path.exists(path):
+                todo[(p.log_id, p.timestamp_ns)] = p
+            elif p.rows is not None:
+                expected[p.entry] = p.rows  # written by an interrupted run; checked with the archive
+            else:  # written by an interrupted run; its rows are checked against av2-api's rule below
+                kept[(p.log_id, p.timestamp_ns)] = p
+        log_fn(f"{len(plan)} sweeps in layout {lay.name} ({lay.leaderboard}); {len(plan) - len(todo)} already "
+               f"written under {parts}")
+        t0 = time.time()
+        for ex, flow_pred, _, _ in av2_challenge_examples(cfg, files, _Skipping(predictor, set(kept)), 0, log_fn,
+                                                          set(todo) | set(kept)):
+            key = _sweep_key(ex)
+            points = ex["points_xyz_t0"]
+            if key in kept:  # av2-api's rule: the interrupted run's file must have the rule's rows
+                p = kept.pop(key)
+                path = os.path.join(parts, *p.entry.split("/"))
+                have = len(av2_submission.read_sweep_file(path, lay)[lay.columns[0]])
+                want = int(av2_submission.av2_api_rule_mask(points, ex["is_ground_t0"]).sum())
+                if have != want:
+                    raise av2_submission.SubmissionFormatError(
+                        path, "rows", f"{have} rows, av2-api's rule selects {want}: written by an earlier run with "
+                        f"other masks; remove {parts} to write it again")
+                expected[p.entry] = have
+                continue
+            p = todo.pop(key)
+            rows = None
+            if lay.mask_rows:
+                rows = archive.checked_mask(key, len(points), p.where) if archive is not None else \
+                    av2_submission.av2_api_rule_mask(points, ex["is_ground_t0"])
+            ego1_from_ego0 = geometry.t0_from_tm1_np(ex["pose_tm1"], ex["pose_t0"])  # partner (next sweep) <- t0
+            columns = av2_submission.sweep_columns(lay, points, challenge_flow_m(flow_pred, ex), ego1_from_ego0,
+                                                   rows)
+            av2_submission.write_sweep(parts, lay, p.entry, columns)
+            expected[p.entry] = len(columns[lay.columns[0]])
+        missing = {**todo, **kept}
+        if missing:
+            p = next(iter(missing.values()))
+            raise ValueError(f"{p.where}: the record of {p.log_id}/{p.timestamp_ns} was listed but not read back")
+        log_fn(f"{len(plan)} sweeps written in {time.time() - t0:.0f} s; zipping and checking {out_zip}")
+        if format_rows is not None and lay.mask_rows:
+            expected = format_rows  # Argoverse's validator: every entry of the JSON with its row count
+        summary = av2_submission.make_archive(parts, out_zip, lay, expected, supervised)
+    finally:
+        if archive is not None:
+            archive.close()
+    return {**summary, "leaderboard": lay.name, "selection": selection, "partial": bool(max_pairs), "notes": notes}
 
 
 def write_summaries(log_dir: str, step: int, result: dict) -> None:

@@ -1,5 +1,6 @@
-"""Argoverse 2 end to end through the tools, on the real sample log: pair records, the challenge protocol in
-tools/eval.py, and a submission archive read back."""
+"""Argoverse 2 end to end through the tools, on the real sample log: pair records, submission archives by av2-api's
+rule and over a mask archive in the official layout (read back), and the challenge protocol in tools/eval.py over the
+same masks."""
 import json
 import os
 import subprocess
@@ -8,66 +9,99 @@ import zipfile
 
 import numpy as np
 import pytest
+import pyarrow as pa
 import pyarrow.feather as feather
 
 from conftest import AV2_LOG, ROOT, TINY_OVERRIDES
-from ff3d_tf import metrics_av2
-from ff3d_tf.data.av2 import argoverse2, av2_submission
+from ff3d_tf.data.av2 import argoverse2
+
+LOG_ID = os.path.basename(AV2_LOG)  # the records' sequence id: the log directory's name
+FLOW = ["flow_tx_m", "flow_ty_m", "flow_tz_m"]
 
 
 def _run(*args):
     out = subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
-    return out.stdout
+    return out.stdout, out.stderr
 
 
 def _tiny():
     return [a for o in TINY_OVERRIDES for a in ("--set", o)]
 
 
-def test_records_and_a_ground_truth_submission_of_the_sample_log(tmp_path):
-    records = tmp_path / "records"
-    out = _run("tools/write_pair_records.py", "--source", "av2", "--input", AV2_LOG, "--out_dir", str(records),
-               *_tiny())
+@pytest.fixture(scope="module")
+def sample_records(tmp_path_factory):
+    records = tmp_path_factory.mktemp("av2_tools") / "records"
+    out, _ = _run("tools/write_pair_records.py", "--source", "av2", "--input", AV2_LOG, "--out_dir", str(records),
+                  *_tiny())
     assert "1 logs" in out and "'pairs': 1" in out
-    zip_path = tmp_path / "submission.zip"
-    out = _run("tools/av2_submission.py", "--ground_truth", "--data_dir", str(records), "--out", str(zip_path),
-               *_tiny())
-    assert "checked against the submission format" in out
+    return records
+
+
+@pytest.fixture(scope="module")
+def sample_masks(tmp_path_factory):
+    """A mask archive in the official layout for the sample's first sweep: av2-api's rule (|x|, |y| <= 50 m, not
+    ground) on Argoverse's own ground labels, with its format JSON."""
     stamps = argoverse2.sweep_timestamps(AV2_LOG)
-    log_id = os.path.basename(AV2_LOG)
-    with zipfile.ZipFile(zip_path) as zf:
-        assert zf.namelist() == [f"{log_id}/{stamps[0]}.feather"]  # the last sweep has no next sweep
-        table = feather.read_table(zf.open(zf.namelist()[0]))
-    assert table.schema.names == ["flow_tx_m", "flow_ty_m", "flow_tz_m", "is_dynamic"]
-    assert [str(t) for t in table.schema.types] == ["halffloat"] * 3 + ["bool"]
-    # One row per eval-mask point (not ground by the log's raster, max(|x|, |y|) < 35 m), in point order.
+    p = argoverse2.read_sweep(AV2_LOG, stamps[0])["points_xyz"]
     labels = feather.read_table(os.path.join(AV2_LOG, "flow_labels.feather"))
-    sweep = argoverse2.read_sweep(AV2_LOG, stamps[0])
-    mask = metrics_av2.eval_mask(sweep["points_xyz"], argoverse2.is_ground(AV2_LOG, sweep["points_xyz"],
-                                                                           sweep["pose"]))
-    assert table.num_rows == int(mask.sum()) > 50_000
-    # The submission's flow (ego motion included) against Argoverse's own labels: float16 and labelling tolerance.
-    got = av2_submission.read_sweep(str(zip_path), log_id, stamps[0])
-    want = np.stack([labels.column(c).to_numpy() for c in ("flow_tx_m", "flow_ty_m", "flow_tz_m")], -1)[mask]
-    close = np.linalg.norm(got["flow_m_av2"].astype(np.float64) - want, axis=1) < 0.02
+    mask = (np.abs(p[:, 0]) <= 50) & (np.abs(p[:, 1]) <= 50) & ~labels.column("is_ground_0").to_numpy(
+        zero_copy_only=False)
+    folder = tmp_path_factory.mktemp("av2_masks")
+    sink = pa.BufferOutputStream()
+    feather.write_feather(pa.table({"mask": pa.array(mask)}), sink)
+    entry = f"{LOG_ID}/{stamps[0]}.feather"
+    with zipfile.ZipFile(folder / "val-masks.zip", "w") as zf:
+        zf.writestr(f"{LOG_ID}/", b"")
+        zf.writestr(entry, sink.getvalue().to_pybytes())
+    (folder / "val_submission_format.json").write_text(json.dumps({entry: int(mask.sum())}))
+    return str(folder / "val-masks.zip"), str(folder / "val_submission_format.json"), mask, labels
+
+
+def test_v1_submissions_of_the_sample_log(sample_records, sample_masks, tmp_path):
+    masks, format_json, mask, labels = sample_masks
+    stamps = argoverse2.sweep_timestamps(AV2_LOG)
+    entry = f"{LOG_ID}/{stamps[0]}.feather"
+    # Without masks: av2-api's rule on the records' ground (the log's raster), with a loud note.
+    out, err = _run("tools/av2_submission.py", "--ground_truth", "--leaderboard", "v1", "--split", "val",
+                    "--data_dir", str(sample_records), "--out", str(tmp_path / "rule.zip"), *_tiny())
+    assert "NOTE: no --masks" in err and "local validation only" in out
+    with zipfile.ZipFile(tmp_path / "rule.zip") as zf:
+        assert zf.namelist() == [entry]  # the last sweep has no next sweep
+        assert feather.read_table(zf.open(entry)).num_rows == 78507  # one point more ground in the labels
+    # Over the official masks and av2-api's format JSON: their rows, in point order.
+    zip_path = tmp_path / "submission.zip"
+    out, _ = _run("tools/av2_submission.py", "--ground_truth", "--leaderboard", "v1", "--split", "val", "--masks",
+                  masks, "--format_json", format_json, "--data_dir", str(sample_records), "--out", str(zip_path),
+                  *_tiny())
+    assert "checked against the layout and " + format_json in out
+    with zipfile.ZipFile(zip_path) as zf:
+        assert zf.namelist() == [entry]
+        table = feather.read_table(zf.open(entry))
+    assert table.schema.names == FLOW + ["is_dynamic"]
+    assert [str(t) for t in table.schema.types] == ["halffloat"] * 3 + ["bool"]
+    assert table.num_rows == int(mask.sum()) == 78506
+    # The flow (ego motion included) against Argoverse's own labels: float16 and labelling tolerance.
+    got = np.stack([table.column(c).to_numpy() for c in FLOW], -1).astype(np.float64)
+    want = np.stack([labels.column(c).to_numpy() for c in FLOW], -1)[mask]
+    close = np.linalg.norm(got - want, axis=1) < 0.02
     assert np.mean(close) > 0.99, np.mean(close)
-    np.testing.assert_array_equal(got["is_dynamic"][close], labels.column("dynamic").to_numpy()[mask][close])
+    np.testing.assert_array_equal(table.column("is_dynamic").to_numpy(zero_copy_only=False)[close],
+                                  labels.column("dynamic").to_numpy(zero_copy_only=False)[mask][close])
 
 
-def test_eval_protocol_av2_with_a_checkpoint(tiny_segment, tmp_path):
-    records = tmp_path / "records"
-    _run("tools/write_pair_records.py", "--source", "av2", "--input", AV2_LOG, "--out_dir", str(records), *_tiny())
+def test_eval_protocol_av2_with_a_checkpoint(tiny_segment, sample_records, sample_masks, tmp_path):
+    masks, _, mask, _ = sample_masks
     model_dir = tmp_path / "model"
     _run("tools/train.py", "--config", "configs/synthetic_cpu.yaml", *_tiny(), "--set", "train.num_steps=1",
          "--data_dir", os.path.dirname(tiny_segment), "--model_dir", str(model_dir))
-    out = _run("tools/eval.py", "--protocol", "av2", "--config", "configs/synthetic_cpu.yaml", *_tiny(),
-               "--set", "data.source=pair_records", "--data_dir", str(records), "--checkpoint", str(model_dir),
-               "--out_dir", str(tmp_path / "eval"))
-    assert "Argoverse 2 scene flow (2024 protocol)" in out and "zero flow" in out
+    out, _ = _run("tools/eval.py", "--protocol", "av2", "--config", "configs/synthetic_cpu.yaml", *_tiny(),
+                  "--set", "data.source=pair_records", "--data_dir", str(sample_records), "--checkpoint",
+                  str(model_dir), "--out_dir", str(tmp_path / "eval"), "--masks", masks)
+    assert "Argoverse 2 scene flow (2024 protocol)" in out and "zero flow" in out and "official masks" in out
     result = json.loads((tmp_path / "eval" / "metrics_av2.json").read_text())
     assert result["zero_flow"]["three_way/fg_dynamic_epe_m"] > 0.3
-    assert result["model"]["num_points"] == result["zero_flow"]["num_points"] > 50_000
+    assert result["model"]["num_points"] == result["zero_flow"]["num_points"] == int(mask.sum())  # the masks' points
 
 
 @pytest.mark.slow

@@ -132,12 +132,11 @@ def test_pseudo_label_epe_is_their_distance_to_the_human_labels(run):
     assert os.path.exists(work / "model_pseudo" / "train_history.json")
 
 
-def test_a_stage_reruns_when_its_command_or_the_code_changed(tmp_path, monkeypatch, capsys):
+def test_a_stage_reruns_when_its_command_or_the_code_changed(tmp_path, capsys):
     """A finished stage is skipped only for the same command on the same code: a tool whose defaults changed
-    (same command line) reruns it, and its outputs are removed first. (The tool's runner is `ff3d_tf.stages`; its
-    other rules: tests/test_stages.py.)"""
-    monkeypatch.syspath_prepend(os.path.join(ROOT, "tools"))
-    import benchmark_distillation as tool
+    (same command line) reruns it, and its outputs are removed first. (The tool's runner, in its job
+    `ff3d_tf.training.distillation_benchmark`, is `ff3d_tf.stages`; its other rules: tests/test_stages.py.)"""
+    from ff3d_tf.training import distillation_benchmark as tool
     from ff3d_tf import stages
     output = tmp_path / "output"
     marker = tmp_path / "runs.txt"

@@ -1,5 +1,5 @@
-"""tools/profile_memory.py: variants isolated in their own environment, medians over rounds, the JSON (the /proc and
-glibc readings it takes: tests/test_bench.py)."""
+"""tools/profile_memory.py (`ff3d_tf.training.cpu_studies.memory_study`): variants isolated in their own environment,
+medians over rounds, the JSON (the /proc and glibc readings it takes: tests/test_bench.py)."""
 import json
 import os
 import subprocess
@@ -8,31 +8,29 @@ import sys
 from conftest import ROOT, TINY_OVERRIDES
 
 from ff3d_tf import cpu
-
-sys.path.append(os.path.join(ROOT, "tools"))  # appended: tools/ module names must not shadow others
-import profile_memory  # noqa: E402
+from ff3d_tf.training import cpu_studies
 
 
 def test_each_variant_gets_its_own_settings_and_none_of_the_others():
     base = {"PATH": "/bin", "MALLOC_ARENA_MAX": "8", "TF_ENABLE_ONEDNN_OPTS": "0",
             "TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "1"}
-    env = profile_memory.child_environment("tf_bfc_pool", base)
+    env = cpu_studies.memory_environment("tf_bfc_pool", base)
     # the caller's knobs do not leak in
     assert env == {"PATH": "/bin", "TF_ENABLE_ONEDNN_OPTS": "1", "TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "0"}
-    env = profile_memory.child_environment("bfc_arena_max_2", base)
+    env = cpu_studies.memory_environment("bfc_arena_max_2", base)
     assert env["MALLOC_ARENA_MAX"] == "2" and env["TF_ENABLE_ONEDNN_OPTS"] == "1"
-    assert profile_memory.child_environment("onednn_off", base)["TF_ENABLE_ONEDNN_OPTS"] == "0"
+    assert cpu_studies.memory_environment("onednn_off", base)["TF_ENABLE_ONEDNN_OPTS"] == "0"
     # every variant says whether oneDNN is on and which TensorFlow CPU allocator it runs with, whatever the caller's
     # environment says and whatever TensorFlow's default for this CPU is (oneDNN off by default on AVX2-only CPUs)
     assert all({"TF_ENABLE_ONEDNN_OPTS", "TF_ONEDNN_USE_SYSTEM_ALLOCATOR"} <= set(v["env"])
-               for v in profile_memory.VARIANTS.values())
+               for v in cpu_studies.MEMORY_VARIANTS.values())
 
 
 def test_times_are_medians_over_rounds_memory_from_the_first():
     def summary(ms, rss):
         return {"train": {"rss_between_gb": rss, "median_ms": ms, "median_cpu_ms": 2 * ms, "median_sys_ms": 1.0,
                           "median_minor_faults": 10}}
-    combined = profile_memory.combine_rounds([summary(300.0, 1.0), summary(100.0, 9.0), summary(200.0, 9.0)])
+    combined = cpu_studies.combine_rounds([summary(300.0, 1.0), summary(100.0, 9.0), summary(200.0, 9.0)])
     assert combined == {"train": {"rss_between_gb": 1.0, "median_ms": 200.0, "median_cpu_ms": 400.0,
                                   "median_sys_ms": 1.0, "median_minor_faults": 10, "rounds": 3}}
 
