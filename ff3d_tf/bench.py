@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import json
 import math
 import os
 import resource
@@ -227,6 +228,16 @@ def smaps_rollup(path: str = "/proc/self/smaps_rollup") -> dict:
         if len(parts) == 3 and parts[2] == "kB":
             out[parts[0].rstrip(":")] = int(parts[1]) * 1024 / GB
     return {k: out[k] for k in ("Rss", "Pss_Anon", "Pss_File", "Anonymous", "AnonHugePages") if k in out}
+
+
+def write_json(path: str, value, sort_keys: bool = False) -> None:
+    """`value` as indented JSON at `path`, its folder made, written whole or not at all (a reader never sees half a
+    file: a run stopped from outside keeps the last complete write)."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    partial = path + ".partial"
+    with open(partial, "w") as f:
+        json.dump(value, f, indent=1, sort_keys=sort_keys)
+    os.replace(partial, path)
 
 
 def load_average(path: str = "/proc/loadavg") -> list[str]:

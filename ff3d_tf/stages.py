@@ -34,6 +34,8 @@ import sys
 import time
 from typing import Callable, Sequence
 
+from ff3d_tf import bench
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CODE_PATTERNS = ("ff3d_tf/**/*.py", "tools/*.py", "configs/*.yaml")
 
@@ -73,12 +75,6 @@ def _read_json(path: str) -> dict:
     except (OSError, ValueError):  # absent, or cut short: nothing is known of it
         return {}
     return found if isinstance(found, dict) else {}
-
-
-def _write_json(path: str, value: dict) -> None:
-    with open(path + ".partial", "w") as f:
-        json.dump(value, f, indent=1)
-    os.replace(path + ".partial", path)  # whole or absent
 
 
 def _remove(path: str) -> None:
@@ -157,7 +153,7 @@ class Stages:
                 if os.path.lexists(path):
                     self.log(f"=== {head}: removing {path} (written by another command or code)")
                     _remove(path)
-        _write_json(self._path(name, ".started"), key)
+        bench.write_json(self._path(name, ".started"), key)
         self.log(f"\n=== {head} ({self._progress(name, include_this=True)}): {' '.join(args)}")
         t = time.time()
         returncode = self._call([sys.executable, *args])
@@ -171,7 +167,7 @@ class Stages:
         missing = [p for p in outputs if not os.path.exists(p)]
         if missing:
             raise StageError(f"stage {name} finished without writing {missing}")
-        _write_json(self._path(name), {**key, "outputs": {p: listing(p) for p in outputs},
+        bench.write_json(self._path(name), {**key, "outputs": {p: listing(p) for p in outputs},
                                        "seconds": self.seconds[name]})
         self.log(f"=== {head} done in {self.seconds[name]:.0f} s ({self._progress(name, include_this=False)})")
         return True

@@ -112,8 +112,6 @@ def json_saver(path: str | None):
     call it after every measured entry, so that a run stopped from outside keeps what it measured."""
     def save(result) -> None:
         if path:
-            import json
-            os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-            with open(path, "w") as f:
-                json.dump(result, f, indent=1)
+            from ff3d_tf import bench
+            bench.write_json(path, result)
     return save

@@ -120,14 +120,6 @@ def seconds_per_pair(speed_section: dict, max_iterations: int, av2_sample_steps:
             **per_method}
 
 
-def _save(path: str, result: dict) -> None:
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    partial = path + ".partial"
-    with open(partial, "w") as f:
-        json.dump(result, f, indent=1)
-    os.replace(partial, path)  # whole or absent
-
-
 def run(out: str, points: int, dt_steps: int, exact_steps: int, av2_log: str, av2_args: Sequence[str],
         skip_av2: bool, fresh: bool, tools_dir: str, log: Callable[[str], None] = print) -> dict:
     """The benchmark (module docstring), written to `out` after each section; the results. `av2_args`: flags added
@@ -142,12 +134,12 @@ def run(out: str, points: int, dt_steps: int, exact_steps: int, av2_log: str, av
     result.setdefault("options", dataclasses.asdict(fit))
     if "speed" not in result:
         result["speed"] = speed(points, dt_steps, exact_steps, fit, log)
-        _save(out, result)
+        bench.write_json(out, result)
     if not skip_av2 and result.get("av2_sample", {}).get("args") != list(av2_args):
         result["av2_sample"] = av2_sample(av2_log, av2_args, tools_dir, log)
-        _save(out, result)
+        bench.write_json(out, result)
     av2 = result.get("av2_sample")
     result["seconds_per_pair"] = seconds_per_pair(result["speed"], fit.max_iterations,
                                                   av2["counts"]["nsfp_iterations"] if av2 else None)
-    _save(out, result)
+    bench.write_json(out, result)
     return result

@@ -25,6 +25,7 @@ import os
 import time
 from typing import Callable
 
+from ff3d_tf import bench
 from ff3d_tf.stages import ROOT, Stages
 
 TOOLS_DIR = os.path.join(ROOT, "tools")
@@ -268,10 +269,7 @@ def table(result: dict) -> list[str]:
 
 def write_json(path: str, result: dict) -> None:
     """`result` as JSON at `path` (NaN as null, keys sorted), written whole or not at all."""
-    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    with open(path + ".partial", "w") as f:
-        json.dump(json_without_nan(result), f, indent=1, sort_keys=True)
-    os.replace(path + ".partial", path)
+    bench.write_json(path, json_without_nan(result), sort_keys=True)
 
 
 def run(options: Options, out_dir: str, json_path: str, command: str, tools_dir: str = TOOLS_DIR,
