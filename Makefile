@@ -31,8 +31,11 @@ test: install
 test-slow: install
 	$(PY) -m pytest -q -m slow tests
 
+# MODEL=gru: the demo with DeFlow's GRU head (tools/demo.py --model gru) instead of the paper's.
+MODEL ?= paper
+
 demo: install
-	$(PY) tools/demo.py --out_dir demo_out
+	$(PY) tools/demo.py --out_dir demo_out --model $(MODEL)
 
 clean:
 	rm -rf demo_out .pytest_cache

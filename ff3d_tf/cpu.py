@@ -11,9 +11,12 @@ emulates an older one (e.g. an AVX2-only AMD Zen 3 on an AVX-512 Zen 4):
                                        x86 CPUs with AVX512_VNNI, AVX512_BF16 or AMX (TensorFlow 2.9 release notes),
                                        so an AVX2-only CPU runs Eigen kernels and TensorFlow's plain CPU allocator
 
-On an AVX2-only CPU, TF_ENABLE_ONEDNN_OPTS=1 trains in float32 faster (benchmarks/cpu_onednn_avx2.json), but oneDNN
-has no bfloat16 convolutions there: with it on, `model.mixed_precision=true` stops with oneDNN's "could not create a
-primitive descriptor". The project keeps TensorFlow's default; the setting is the user's.
+On an AVX2-only CPU, oneDNN has no bfloat16 convolutions: with its operations on, `model.mixed_precision=true` stops
+with oneDNN's "could not create a primitive descriptor". Whether oneDNN's float32 kernels beat Eigen's there depends on
+the job and the model (benchmarks/cpu_onednn_avx2.json, benchmarks/cpu_step_avx2.json). `startup_environment` is the
+project's choice, per job and precision, that the tools apply when they start (tools/_common.py), before TensorFlow
+is imported; a TF_ENABLE_ONEDNN_OPTS the user set is always kept (docs/deployment.md says which setting each job gets
+and why).
 
 `EMULATIONS` names such caps by the CPU they stand for (`make test EMULATE_CPU=zen3`). No TensorFlow here: whether
 TensorFlow's oneDNN operations are on in a process is `ff3d_tf.internals.onednn_enabled`.
@@ -39,6 +42,19 @@ EMULATIONS = {
     "zen3": {"ONEDNN_MAX_CPU_ISA": "AVX2", "XLA_FLAGS": "--xla_cpu_max_isa=AVX2", "TF_ENABLE_ONEDNN_OPTS": "0"},
     "zen3_onednn": {"ONEDNN_MAX_CPU_ISA": "AVX2", "XLA_FLAGS": "--xla_cpu_max_isa=AVX2", "TF_ENABLE_ONEDNN_OPTS": "1"},
 }
+
+
+# x86 flags with which TensorFlow turns its oneDNN operations on by itself (TensorFlow 2.9 release notes: AVX512_VNNI,
+# AVX512_BF16, AMX); without them it runs Eigen's kernels.
+TENSORFLOW_ONEDNN_FLAGS = ("avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16", "amx_int8")
+# What `startup_environment` may set.
+STARTUP_KEYS = ("TF_ENABLE_ONEDNN_OPTS",)
+STARTUP_JOBS = ("train", "inference")
+STARTUP_PRECISIONS = ("float32", "bfloat16", "auto", None)  # None: not known at start
+# TF_ENABLE_ONEDNN_OPTS per job on an x86 CPU whose usable flags reach AVX2 but none of TENSORFLOW_ONEDNN_FLAGS (AMD
+# Zen 3, Intel Haswell to Comet Lake), float32. The measurement behind each entry: benchmarks/cpu_step_avx2.json
+# (tools/benchmark_cpu_step.py, compile mode auto of the job, both libraries capped to AVX2), docs/benchmarks.md.
+AVX2_ONEDNN = {"train": "0", "inference": "0"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,3 +139,39 @@ def emulation_env(name: str) -> str:
     if name not in EMULATIONS:
         raise SystemExit(f"EMULATE_CPU={name!r}: one of {', '.join(EMULATIONS)}")
     return " ".join(f"{k}={v}" for k, v in EMULATIONS[name].items())
+
+
+def tensorflow_onednn_default(info: CpuInfo, environ=None) -> bool:
+    """Whether TensorFlow turns its oneDNN operations on by itself on `info`'s CPU, judged on the flags left usable
+    under the caps of `environ` (so that a capped CPU is judged as the one it emulates)."""
+    return any(f in usable_flags(info, environ) for f in TENSORFLOW_ONEDNN_FLAGS)
+
+
+def startup_environment(job: str, precision: str | None, info: CpuInfo | None = None, environ=None) -> dict:
+    """What a process about to import TensorFlow for `job` ("train" or "inference") in `precision` (the
+    `model.mixed_precision` asked for: "float32", "bfloat16", "auto", or None when not known at start) should add to
+    its environment: {} or {"TF_ENABLE_ONEDNN_OPTS": "0" | "1"}. `info`: default this machine's CPU.
+
+      - TF_ENABLE_ONEDNN_OPTS already in `environ` (default os.environ): {} (the user's setting is kept);
+      - no readable x86 flags, or no AVX2 among the usable ones: {} (TensorFlow's default);
+      - a CPU on which TensorFlow turns oneDNN on by itself (`tensorflow_onednn_default`): "1", the same as its
+        default, written out so that an emulation under caps gets what the real CPU gets;
+      - an AVX2 CPU below those: "0" for bfloat16 or an unknown precision (oneDNN has no bfloat16 convolutions
+        there: mixed precision never meets oneDNN on it), else `AVX2_ONEDNN[job]` (float32; "auto" resolves to
+        float32 on such a CPU, `ff3d_tf.model.compile.resolve_precision`).
+    """
+    if job not in STARTUP_JOBS:
+        raise ValueError(f"job={job!r}: one of {', '.join(STARTUP_JOBS)}")
+    if precision not in STARTUP_PRECISIONS:
+        raise ValueError(f"precision={precision!r}: one of {', '.join(map(str, STARTUP_PRECISIONS))}")
+    environ = os.environ if environ is None else environ
+    if "TF_ENABLE_ONEDNN_OPTS" in environ:
+        return {}
+    info = info or read_cpuinfo()
+    if info is None or "avx2" not in usable_flags(info, environ):
+        return {}
+    if tensorflow_onednn_default(info, environ):
+        return {"TF_ENABLE_ONEDNN_OPTS": "1"}
+    if precision in ("bfloat16", None):
+        return {"TF_ENABLE_ONEDNN_OPTS": "0"}
+    return {"TF_ENABLE_ONEDNN_OPTS": AVX2_ONEDNN[job]}

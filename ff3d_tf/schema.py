@@ -116,9 +116,9 @@ PAIR_T0_EXTRA_POINT_KEYS = _point_keys("t0", True)
 PAIR_TM1_EXTRA_POINT_KEYS = _point_keys("tm1", True)
 PAIR_EXTRA_POINT_KEYS = PAIR_T0_EXTRA_POINT_KEYS + PAIR_TM1_EXTRA_POINT_KEYS
 # The extras the Argoverse 2 challenge's evaluation reads (its eval mask and meta-classes), and those AV2 pair records
-# carry (also the partner cloud's ground, for the pseudo-label job).
+# carry (also the partner cloud's ground, for the pseudo-label job, and each point's cuboid, for DeltaFlow's loss).
 AV2_EVAL_KEYS = ("is_ground_t0", "category_t0")
-AV2_RECORD_EXTRAS = AV2_EVAL_KEYS + ("is_ground_tm1",)
+AV2_RECORD_EXTRAS = AV2_EVAL_KEYS + ("is_ground_tm1", "instance_id_t0")
 # What the model reads of a batched example (labels and poses are not model input).
 MODEL_INPUT_KEYS = ("points_xyz_t0", "point_features_t0", "point_mask_t0", "points_xyz_tm1_in_t0",
                     "point_features_tm1", "point_mask_tm1")

@@ -653,9 +653,38 @@ ONEDNN_TABLE = Table(
           for cap, label in (("avx2", "capped to AVX2 (as on AMD Zen 3)"), ("none", "the CPU's own"))
           for onednn, onednn_label in (("0", "off"), ("1", "on"))))
 
+# -- heads and losses (benchmark_heads.py), in docs/training.md
+_HB = "heads_synthetic.json"
+_HB_DOC = "docs/training.md"
+_HB_VARIANTS = (("paper_l2", "paper head + L2"), ("gru_l2", "GRU head + L2"), ("gru_deflow", "GRU head + DeFlow loss"),
+                ("gru_deltaflow", "GRU head + DeltaFlow loss"), ("gru_deflow_augment", "GRU + DeFlow + augmentation"),
+                ("zero_flow", "zero flow"))
+_HB_COLUMNS = ("moving_mps", "stationary_mps", "fg_dynamic_epe_m", "three_way_mean_epe_m", "bucketed_dynamic_norm_epe")
+
+
+def _head_cell(fmt, variant, column):
+    """A figure of the heads benchmark's headline, 3 decimals; n/a where the evaluation had no such points."""
+    return Calc("{}", lambda v: "n/a" if v is None else f"{v:.3f}",
+                (V(_HB, f"formats/{fmt}/headline/{variant}/{column}"),))
+
+
+HEADS_TABLE = Table(
+    _HB_DOC, Quote(_HB_DOC, "`benchmarks/heads_synthetic.json`: {} training steps a variant, seed {}, `{}`, synthetic "
+                            "data in the formats {} ({} training and {} held-out WOD segments or AV2 logs of {} "
+                            "frames, WOD lidar scale {}); error on the held-out pairs, {} ({} cores):",
+                   (V(_HB, "options/steps"), V(_HB, "options/seed"), V(_HB, "options/config"),
+                    Calc("{}", lambda f: ", ".join(f), (V(_HB, "options/formats"),)),
+                    V(_HB, "options/train_segments"), V(_HB, "options/eval_segments"),
+                    V(_HB, "options/frames_per_segment"), V(_HB, "options/lidar_scale"), V(_HB, "cpu/model_name"),
+                    V(_HB, "cpu/cpu_count"))),
+    ("data", "variant", "moving (m/s)", "stationary (m/s)", "fg dynamic EPE (m)", "three-way mean EPE (m)",
+     "bucketed dynamic (normalized)"), "llrrrrr",
+    tuple((fmt, label, *(_head_cell(fmt, variant, c) for c in _HB_COLUMNS))
+          for fmt in lookup(source(_HB), "options/formats") for variant, label in _HB_VARIANTS))
+
 TABLES = (LATENCY_TABLE, BF16_TABLE, MEMORY_TABLE, ONNX_TABLE, GPU_FORWARD_TABLE, GPU_TRAIN_TABLE, INPUT_TABLE,
           AV2_INPUT_TABLE, TRAINING_INPUT_TABLE, SIZING_TABLE, NSFP_SPEED_TABLE, NSFP_QUALITY_TABLE, DISTILLATION_TABLE,
-          SOAK_TABLE, ONEDNN_TABLE)
+          SOAK_TABLE, ONEDNN_TABLE, HEADS_TABLE)
 
 _1M = "latency_cpu_1m.json"
 _AMD_DIFF = "summary/flow_difference_bfloat16_vs_float32_mps"
@@ -834,6 +863,7 @@ STEP_FUNCTIONS = (  # (file, function or Class.method): from the command line to
     ("ff3d_tf/model/forward.py", "model_inputs"),
     ("ff3d_tf/model/fastflow3d.py", "FastFlow3D.call"),
     ("ff3d_tf/model/losses.py", "batch_flow_loss"),
+    ("ff3d_tf/model/losses.py", "per_sample_training_loss"),
     ("ff3d_tf/model/losses.py", "per_sample_flow_loss"),
     ("ff3d_tf/model/losses.py", "point_weights"),
     ("ff3d_tf/training/trainer.py", "_over_replicas"),

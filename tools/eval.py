@@ -4,6 +4,8 @@ python tools/eval.py --config C --data_dir VAL --checkpoint MODEL [--out_dir O]
     MODEL: a model_dir or checkpoint prefix, a SavedModel directory (tools/export.py), an .onnx file
     (tools/export_onnx.py) or a portable XLA export directory (tools/export_xla.py, batch 1): what the path holds
     chooses the runtime (ff3d_tf/inference/predictor.py).
+python tools/eval.py --method nsfp --data_dir VAL --out_dir O [--sweep_period_s 0.1] [--set nsfp.KEY=VALUE]
+    (no model: NSFP fitted to each pair, as tools/predict.py --method nsfp; any protocol)
 python tools/eval.py --protocol av2 --set data.source=pair_records --data_dir AV2_VAL_RECORDS --checkpoint M
     [--masks val-masks.zip]
     (the Argoverse 2 2024 challenge: three-way and bucketed normalized EPE in metres per frame over the eval mask,
@@ -28,8 +30,11 @@ from ff3d_tf.training.evaluation import evaluate, evaluate_av2, write_results
 def main():
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--data_dir", required=True)
-    p.add_argument("--checkpoint", required=True, help="model_dir, checkpoint prefix, SavedModel directory, .onnx "
-                                                       "file or portable XLA export directory")
+    p.add_argument("--checkpoint", help="model_dir, checkpoint prefix, SavedModel directory, .onnx "
+                                        "file or portable XLA export directory")
+    p.add_argument("--method", choices=("model", "nsfp"), default="model", help="nsfp: no model, NSFP fitted to "
+                   "each pair (ff3d_tf/labels/nsfp_predictor.py; the config's nsfp section; needs --out_dir)")
+    p.add_argument("--sweep_period_s", type=float, default=0.1, help="--method nsfp: the pairs' gap (s)")
     p.add_argument("--out_dir", default=None, help="where metrics.json / metrics_zero_flow.json / metrics.csv go "
                                                    "(default: --checkpoint, or the folder of a prefix or file)")
     p.add_argument("--max_pairs", type=int, default=0)
@@ -40,7 +45,13 @@ def main():
         p.error("--masks needs --protocol av2")
     cfg = _common.load(args)
     files = list_segment_files(args.data_dir)
-    predictor = load_predictor(cfg, args.checkpoint)
+    if (args.method == "model") != bool(args.checkpoint) or (args.method == "nsfp" and not args.out_dir):
+        p.error("--method model needs --checkpoint; --method nsfp takes no model and needs --out_dir")
+    if args.method == "nsfp":
+        from ff3d_tf.labels import nsfp_predictor
+        predictor = nsfp_predictor.predictor_from_config(cfg, args.sweep_period_s, lambda s: print(s, flush=True))
+    else:
+        predictor = load_predictor(cfg, args.checkpoint)
     import tensorflow as tf
     out_dir = args.out_dir or (args.checkpoint if tf.io.gfile.isdir(args.checkpoint) else
                                os.path.dirname(args.checkpoint))

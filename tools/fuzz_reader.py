@@ -1,13 +1,15 @@
-"""Fuzz the readers: damaged WOD records and files, damaged Argoverse 2 feather logs, damaged YAML configs.
+"""Fuzz the readers: damaged WOD records and files, damaged Argoverse 2 feather logs, damaged YAML configs, damaged
+sequences of your own sweeps (point files of every format, poses, timestamps, box tables).
 
 python tools/fuzz_reader.py [--mutants 2000] [--files 40] [--pair_files 4] [--av2_mutants 270] \
-    [--config_mutants 700] [--seed 0] [--work_dir /tmp/fuzz] [--out fuzz_report.json]
+    [--config_mutants 700] [--sequence_mutants 320] [--seed 0] [--work_dir /tmp/fuzz] [--out fuzz_report.json]
 
 Every mutant must end as a finite decode or the reader's own error naming file, record and field (configs: the key
 and what is allowed); never a crash, a raw library error, a hang (the process aborts with a traceback after
 --hang_s per input) or a huge allocation. Prints mutants by kind x outcome, the slowest input and the peak memory;
 exits 1 if any defect was found. The inputs are a tiny synthetic segment and `data/av2_sample_log` (copied, never
-written). See `ff3d_tf.fuzz` for the mutation kinds.
+written) and a small sequence of every point format written here. See `ff3d_tf.fuzz` for the mutation kinds;
+a read of a damaged sequence that allocates far more than its files hold is a defect too (`huge_allocation`).
 """
 import argparse
 import json
@@ -21,7 +23,7 @@ import _common  # noqa: F401
 from ff3d_tf.config import load_config
 from ff3d_tf.data.synthetic import wod as synthetic
 from ff3d_tf.data.wod import waymo
-from ff3d_tf.fuzz import av2 as av2_fuzz, config as config_fuzz, wod as wod_fuzz
+from ff3d_tf.fuzz import av2 as av2_fuzz, config as config_fuzz, files as files_fuzz, wod as wod_fuzz
 from ff3d_tf.fuzz.report import peak_rss_mib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -34,6 +36,7 @@ def main():
     p.add_argument("--pair_files", type=int, default=4, help="of those, read through the tf.data pair pipeline too")
     p.add_argument("--av2_mutants", type=int, default=270)
     p.add_argument("--config_mutants", type=int, default=700)
+    p.add_argument("--sequence_mutants", type=int, default=320, help="damaged sequences of your own sweeps")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--lidar_scale", type=float, default=0.12, help="range image scale of the synthetic segment")
     p.add_argument("--hang_s", type=float, default=60.0,
@@ -64,6 +67,10 @@ def main():
         reports["configs"] = config_fuzz.fuzz_configs(os.path.join(work, "configs"), args.config_mutants,
                                                      args.seed, hang_s=args.hang_s)
         print(reports["configs"].format("YAML configs"), flush=True)
+    if args.sequence_mutants:
+        reports["sequences"] = files_fuzz.fuzz_sequence(os.path.join(work, "sequences"), args.sequence_mutants,
+                                                        args.seed, hang_s=args.hang_s)
+        print(reports["sequences"].format("sequences of your own sweeps"), flush=True)
     defects = sum(len(r.defects) for r in reports.values())
     total = sum(len(r.results) for r in reports.values())
     print(f"{total} inputs in {time.time() - t0:.0f} s, {defects} defects, peak memory {peak_rss_mib():.0f} MiB")

@@ -4,6 +4,9 @@ python tools/make_synthetic_data.py --out_dir D                 WOD: one TFRecor
                                                                 segment (all five lidars, scene-flow labels)
 python tools/make_synthetic_data.py --format av2 --out_dir D    Argoverse 2: sensor logs D/<split>/<log_id>/ (lidar
                                                                 sweeps, cuboids, poses, ground raster, map)
+python tools/make_synthetic_data.py --format files --out_dir D  your own sweeps' layout: D/<sequence>/ with .bin
+                                   [--no_boxes]                 sweeps, poses.txt, timestamps.txt and boxes.csv
+                                                                (tools/write_pair_records.py --source files)
 Deterministic by seed; skips segments and logs that already exist (resumable).
 """
 import argparse
@@ -22,7 +25,8 @@ def main():
     p.add_argument("--frames_per_segment", type=int, default=20)
     p.add_argument("--seed", type=int, default=0, help="segment k uses seed + k")
     p.add_argument("--lidar_scale", type=float, default=1.0, help="< 1 shrinks the range images (tests)")
-    p.add_argument("--format", choices=("wod", "av2"), default="wod")
+    p.add_argument("--format", choices=("wod", "av2", "files"), default="wod")
+    p.add_argument("--no_boxes", action="store_true", help="files: no box table (sweeps and poses only)")
     p.add_argument("--num_logs", type=int, default=2, help="av2: logs to write")
     p.add_argument("--sweeps_per_log", type=int, default=6, help="av2")
     p.add_argument("--points_per_sweep", type=int, default=6000, help="av2")
@@ -37,6 +41,16 @@ def main():
                   f"ETA {(time.time() - t0) / (k + 1) * (n - k - 1):.0f}s", flush=True)
         synthetic_av2.write_synthetic_split(args.out_dir, args.num_logs, args.split, args.sweeps_per_log, args.seed,
                                             args.points_per_sweep, progress=progress)
+        return
+    if args.format == "files":
+        from ff3d_tf.data.synthetic import files as synthetic_files
+        t0 = time.time()
+
+        def progress_files(k, n, directory, skipped):
+            print(f"[{k + 1}/{n}] {'exists, kept' if skipped else 'wrote'}: {directory} "
+                  f"ETA {(time.time() - t0) / (k + 1) * (n - k - 1):.0f}s", flush=True)
+        synthetic_files.write_synthetic_sequences(args.out_dir, args.num_segments, args.frames_per_segment, args.seed,
+                                                  args.lidar_scale, not args.no_boxes, progress_files)
         return
     os.makedirs(args.out_dir, exist_ok=True)
     t0, frames = time.time(), 0

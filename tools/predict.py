@@ -1,13 +1,16 @@
-"""Run a model over a WOD TFRecord, an Argoverse 2 log or your own point clouds: flows, BEV PNGs and (optionally) a
-3D recording for the Rerun viewer. The model (--checkpoint M) is a model_dir or checkpoint prefix, a SavedModel
-directory, an .onnx file or a portable XLA export directory (batch 1): what the path holds chooses the runtime
-(ff3d_tf/inference/predictor.py).
+"""Run a model, or NSFP without one, over a WOD TFRecord, an Argoverse 2 log or your own point clouds: flows, BEV PNGs
+and (optionally) a 3D recording for the Rerun viewer. The model (--checkpoint M) is a model_dir or checkpoint prefix, a
+SavedModel directory, an .onnx file or a portable XLA export directory (batch 1): what the path holds chooses the
+runtime (ff3d_tf/inference/predictor.py). --method nsfp needs no model: NSFP is fitted to each pair (the config's
+nsfp section, as tools/pseudo_label.py; seconds to minutes a pair on a CPU; ff3d_tf/labels/nsfp_predictor.py), its
+flow the motion over the pair's gap: D/timestamps.txt, else --sweep_period_s (0.1).
 
 python tools/predict.py --config C --checkpoint M --input SEGMENT.tfrecord --out_dir O [--png_every 10]
 python tools/predict.py --config C --checkpoint M --av2_log data/av2_sample_log --out_dir O
 python tools/predict.py --config C --checkpoint M --points_tm1 A.pcd --points_t0 B.pcd [--pose_tm1 P --pose_t0 Q] \
     --out_dir O [--intensity_scale auto] [--rerun O/flow.rrd]
 python tools/predict.py --config C --checkpoint M --sweeps_dir D --out_dir O [--rerun O/flow.rrd]
+python tools/predict.py --method nsfp --sweeps_dir D --out_dir O [--sweep_period_s 0.1] [--set nsfp.KEY=VALUE]
 
 Own point clouds (.npy, .npz, KITTI .bin, PCD, PLY; points in the vehicle frame, metres): formats, the intensity
 rule and the poses of a sweeps directory (D/poses.txt or D/<sweep>.pose.txt|.pose.npy) are described in
@@ -15,106 +18,17 @@ ff3d_tf/data/files/point_files.py. Without poses the t-1 cloud is taken as alrea
 writes <t0 sweep name>.npz (flow_mps, point_valid, points_xyz_t0) and <t0 sweep name>.feather, one row per point
 of the t0 file in its order (points outside the grid: point_valid false, flow 0), and a BEV PNG every --png_every
 pairs. --rerun (any input) writes both clouds and the flow arrows of every pair on a `sweep` time line
-(ff3d_tf/viz3d.py); open it with `rerun O/flow.rrd`.
+(ff3d_tf/viz3d.py); open it with `rerun O/flow.rrd`. The job: ff3d_tf/inference/predict_job.py.
 """
 import argparse
-import os
 import sys
 
 import _common
-import numpy as np
-import tensorflow as tf
 
-from ff3d_tf import viz, viz3d
-from ff3d_tf.config import replace_config
-from ff3d_tf.data import pairs
+from ff3d_tf import viz3d
 from ff3d_tf.data.files import point_files
-from ff3d_tf.data.wod import waymo
 from ff3d_tf.data.files.point_file_errors import PointFileError
-from ff3d_tf.data.wod_errors import MissingFlowLabelsError
-from ff3d_tf.inference.predictor import load_predictor
-
-# Own clouds are predicted point for point: no crop (points outside the grid get point_valid false) and no study.
-OWN_CLOUD_CONFIG = {"data.crop_to_grid": False, "data.point_keep_fraction": 1.0,
-                    "data.remove_ground_below_z_m": None, "data.class_ablation": "none"}
-
-
-def _examples(args, cfg) -> tf.data.Dataset:
-    if args.av2_log:
-        from ff3d_tf.labels import av2
-        return tf.data.Dataset.from_tensors(av2.model_example(args.av2_log, cfg))
-    first = next(waymo.iterate_records(args.input))[1]
-    try:
-        waymo.decode_frame(first, laser_names=cfg.data.laser_names, source=args.input)
-        inference_only = False
-    except MissingFlowLabelsError:
-        inference_only = True
-        print(f"{args.input}: no flow labels; predicting without ground truth", flush=True)
-    return pairs.pair_dataset([args.input], cfg, inference_only=inference_only)
-
-
-def _dataset_pairs(args, cfg):
-    """(name, sweep index of t0, batch, example) of each pair of --input or --av2_log."""
-    with pairs.input_errors_named([args.input or args.av2_log]):  # a bad record: FrameDecodeError naming it
-        for i, (batch, ex) in enumerate(pairs.padded_singletons(_examples(args, cfg), cfg.data.point_bucket_base)):
-            yield f"frame_{i:04d}", i + 1, batch, {k: v.numpy() for k, v in ex.items()}
-
-
-class _Notes:
-    """Prints each remark about the user's files once (a log of many sweeps repeats the same ones)."""
-
-    def __init__(self):
-        self.seen = set()
-
-    def say(self, key: str, text: str) -> None:
-        if key not in self.seen:
-            self.seen.add(key)
-            print(text, flush=True)
-
-
-def _read_sweep(path: str, pose, scale, notes: _Notes) -> dict:
-    cols = point_files.read_point_file(path)
-    for note in cols.notes:
-        notes.say(note, f"{path}: {note}")
-    if cols.ignored:
-        notes.say("ignored " + ",".join(cols.ignored), f"{path}: columns not used: {', '.join(cols.ignored)}")
-    if cols.intensity is None:
-        notes.say("no intensity", f"{path}: no intensity column ({'/'.join(point_files.INTENSITY_FIELDS)}): "
-                                  "intensity 0")
-    else:
-        factor = point_files.intensity_scale_of(cols.intensity_dtype, scale)
-        rule = "--intensity_scale" if scale is not None else "auto: integer types / their maximum, floats as stored"
-        notes.say(f"scale {cols.intensity_dtype} {factor}", f"{path}: intensity stored as {cols.intensity_dtype}, "
-                                                            f"multiplied by {factor:.6g} ({rule})")
-    return point_files.frame_from_columns(cols, pose, scale)
-
-
-def _own_pairs(args, cfg):
-    """(name, sweep index of t0, batch, example) of each consecutive pair of the user's clouds."""
-    if args.sweeps_dir:
-        sweeps = point_files.list_sweeps(args.sweeps_dir)
-        poses = point_files.sweep_poses(args.sweeps_dir, sweeps)
-        print(f"{args.sweeps_dir}: {len(sweeps)} sweeps, {len(sweeps) - 1} pairs, "
-              f"{'poses given' if poses is not None else 'no poses'}", flush=True)
-    else:
-        sweeps = [args.points_tm1, args.points_t0]
-        poses = None if args.pose_t0 is None else [point_files.read_pose(args.pose_tm1),
-                                                   point_files.read_pose(args.pose_t0)]
-    if poses is None:
-        print("no poses: the t-1 cloud of each pair is taken as already in the t0 vehicle frame (no ego-motion "
-              "compensation)", flush=True)
-    own_cfg = replace_config(cfg, OWN_CLOUD_CONFIG)
-    notes, frame_tm1 = _Notes(), None
-    for i, path in enumerate(sweeps):
-        frame_t0 = _read_sweep(path, None if poses is None else poses[i], args.intensity_scale, notes)
-        if frame_tm1 is not None:
-            ex = pairs.make_pair({k: tf.constant(v) for k, v in frame_tm1.items()},
-                                 {k: tf.constant(v) for k, v in frame_t0.items()}, own_cfg, seed=tf.constant([1, 7]))
-            for batch, example in pairs.padded_singletons(tf.data.Dataset.from_tensors(ex),
-                                                          cfg.data.point_bucket_base):
-                name = os.path.splitext(os.path.basename(path))[0]
-                yield name, i, batch, {k: v.numpy() for k, v in example.items()}
-        frame_tm1 = frame_t0
+from ff3d_tf.inference import predict_job
 
 
 def _intensity_scale(text: str):
@@ -126,8 +40,12 @@ def _intensity_scale(text: str):
 
 def _arguments():
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
-    p.add_argument("--checkpoint", required=True, help="model_dir, checkpoint prefix, SavedModel directory, .onnx "
-                                                       "file or portable XLA export directory")
+    p.add_argument("--method", choices=("model", "nsfp"), default="model",
+                   help="model: the trained model at --checkpoint; nsfp: NSFP fitted to each pair, no model")
+    p.add_argument("--checkpoint", help="--method model: model_dir, checkpoint prefix, SavedModel directory, .onnx "
+                                        "file or portable XLA export directory")
+    p.add_argument("--sweep_period_s", type=float, default=0.1, help="your clouds: the time between sweeps (s) "
+                                                                     "where a sweeps directory has no timestamps.txt")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--input", help="one WOD segment TFRecord")
     src.add_argument("--av2_log", help="an Argoverse 2 log directory (two consecutive sweeps)")
@@ -146,6 +64,10 @@ def _arguments():
     p.add_argument("--png_every", type=int, default=10, help="a BEV PNG every this many frames (first included)")
     args = p.parse_args()
     own = args.points_t0 or args.sweeps_dir
+    if (args.method == "model") != bool(args.checkpoint):
+        p.error("--method model needs --checkpoint; --method nsfp fits each pair and takes no model")
+    if not args.sweep_period_s > 0:
+        p.error("--sweep_period_s must be > 0")
     if bool(args.points_t0) != bool(args.points_tm1):
         p.error("--points_t0 and --points_tm1 go together (one pair of your own clouds)")
     if (args.pose_tm1 is None) != (args.pose_t0 is None):
@@ -161,49 +83,32 @@ def _arguments():
     return args
 
 
+def _source(args, cfg) -> predict_job.PairSource:
+    if args.av2_log:  # its labelled pair comes from the labels pipeline, which the inference job does not import
+        import tensorflow as tf
+        from ff3d_tf.labels import av2
+        return predict_job.ExampleDataset(
+            args.av2_log, lambda: tf.data.Dataset.from_tensors(av2.model_example(args.av2_log, cfg)))
+    if args.input:
+        return predict_job.WodSegment(args.input)
+    if args.sweeps_dir:
+        return predict_job.SweepsDirectory(args.sweeps_dir, args.intensity_scale, args.sweep_period_s)
+    return predict_job.PointFilePair(args.points_tm1, args.points_t0, args.pose_tm1, args.pose_t0,
+                                     args.intensity_scale, args.sweep_period_s)
+
+
 def main():
     args = _arguments()
     cfg = _common.load(args)
-    own = bool(args.points_t0 or args.sweeps_dir)
-    source = args.input or args.av2_log or args.points_t0 or args.sweeps_dir
+    predictor = None
+    if args.method == "nsfp":  # the labels pipeline's fit, wired in here: the inference job does not import it
+        from ff3d_tf.labels import nsfp_predictor
+        predictor = nsfp_predictor.predictor_from_config(cfg, args.sweep_period_s, predict_job.print_line)
     try:
-        recording = None
-        if args.rerun:  # before any work: a missing extra fails at once
-            recording = viz3d.FlowRecording(args.rerun, recording_name=os.path.basename(os.path.normpath(source)))
-        os.makedirs(args.out_dir, exist_ok=True)
-        # Own clouds: the model loads after the first pair is read, so a bad file fails at once.
-        predictor, n = None if own else load_predictor(cfg, args.checkpoint), 0
-        for i, (name, sweep, batch, ex) in enumerate((_own_pairs if own else _dataset_pairs)(args, cfg)):
-            if predictor is None:
-                predictor = load_predictor(cfg, args.checkpoint)
-            flow, valid = predictor.predict(batch, ex)
-            if own:
-                written = point_files.write_predictions(os.path.join(args.out_dir, name), ex["points_xyz_t0"], flow,
-                                                        valid)
-                print(f"wrote {', '.join(written)}", flush=True)
-                has_labels = False
-            else:
-                has_labels = bool(np.any(ex["class_id_t0"] >= 0))
-                np.savez_compressed(os.path.join(args.out_dir, name + ".npz"), points_xyz_t0=ex["points_xyz_t0"],
-                                    flow_mps_pred=flow, point_valid=valid, flow_mps_true=ex["flow_mps_t0"],
-                                    class_id_t0=ex["class_id_t0"])
-            if i % args.png_every == 0:
-                panels = {"prediction": np.where(valid[:, None], flow, 0.0)}
-                if has_labels:
-                    panels["ground truth"] = np.where((ex["class_id_t0"] >= 0)[:, None], ex["flow_mps_t0"], 0.0)
-                png = viz.bev_flow_png(os.path.join(args.out_dir, name + "_bev.png"), ex["points_xyz_t0"], panels,
-                                       title=f"{source} pair {i}: colour = direction, brightness = speed")
-                print(f"wrote {png}", flush=True)
-            if recording is not None:
-                recording.log_pair(sweep, ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"], flow, valid,
-                                   ex["pose_t0"])
-            n += 1
-            print(f"predicted pair {i}: {int(valid.sum())}/{len(valid)} points with a prediction", flush=True)
-        if recording is not None:
-            print(f"wrote {recording.close()} (open it with: rerun {args.rerun})", flush=True)
+        predict_job.predict(cfg, args.checkpoint, _source(args, cfg), args.out_dir, args.png_every, args.rerun,
+                            predictor=predictor)
     except (PointFileError, viz3d.Viz3dUnavailableError) as e:
         sys.exit(f"error: {e}")
-    print(f"wrote {n} frames to {args.out_dir}")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ Each mutant damages a valid input one way (a `kind`) and must end as either
     naming file and column; `ConfigError` naming the key and what is allowed).
 Anything else is a defect: `unnamed_error` (our error without file/record/field), `raw_error` (a TensorFlow or
 library error escaping), `crash` (any other exception), `nonfinite` (a decode with NaN/Inf or inconsistent arrays),
-`slow` (over the per-input time bound). A hang is not waited for: with `hang_s` the watchdog aborts the process with
+`slow` (over the per-input time bound), `huge_allocation` (a reader that allocated what a header claims, where the
+fuzzer measures it: `ff3d_tf.fuzz.files`). A hang is not waited for: with `hang_s` the watchdog aborts the process with
 every thread's traceback.
 """
 from __future__ import annotations
@@ -23,7 +24,7 @@ import numpy as np
 
 from ff3d_tf import schema
 
-DEFECTS = ("unnamed_error", "raw_error", "crash", "nonfinite", "slow")
+DEFECTS = ("unnamed_error", "raw_error", "crash", "nonfinite", "slow", "huge_allocation")
 OUTCOMES = ("decoded", "named_error") + DEFECTS
 SECONDS_PER_INPUT = 10.0  # bound on one decode, far above what a decode of any valid record takes
 NONFINITE = (np.nan, np.inf, -np.inf)  # values the mutators write into float fields
@@ -60,10 +61,11 @@ class Report:
         return max(self.results, key=lambda r: r.seconds, default=None)
 
     def format(self, title: str) -> str:
+        width = max(len(o) for o in OUTCOMES) + 1
         lines = [f"{title}: {len(self.results)} inputs",
-                 f"  {'kind':24s}" + "".join(f"{o:>14s}" for o in OUTCOMES)]
+                 f"  {'kind':24s}" + "".join(f"{o:>{width}s}" for o in OUTCOMES)]
         for kind, counts in sorted(self.table().items()):
-            lines.append(f"  {kind:24s}" + "".join(f"{counts.get(o, 0):14d}" for o in OUTCOMES))
+            lines.append(f"  {kind:24s}" + "".join(f"{counts.get(o, 0):{width}d}" for o in OUTCOMES))
         slow = self.slowest()
         if slow is not None:
             lines.append(f"  slowest: {slow.seconds * 1e3:.1f} ms ({slow.kind}: {slow.detail[:120]})")

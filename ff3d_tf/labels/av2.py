@@ -6,9 +6,10 @@ Records for the challenge pair each sweep t (the t0 cloud) with the NEXT sweep t
 the challenge scores the points of sweep t with their displacement to sweep t+1. The label is the model's quantity,
 the motion from the partner cloud to the t0 cloud divided by the gap, (p_t - p_t+1) / dt, so it is minus the
 velocity; the challenge's flow (metres to the next sweep) is -flow_mps_t0 * dt. Each record also holds the ground
-masks of both clouds (`is_ground_t0`, `is_ground_tm1`: the log's ground raster) and the Argoverse category of every
-point (`category_t0`, the `classes` values of Argoverse's own flow labels; 0 = in no cuboid). The last sweep of a log
-has no partner.
+masks of both clouds (`is_ground_t0`, `is_ground_tm1`: the log's ground raster), the Argoverse category of every
+point (`category_t0`, the `classes` values of Argoverse's own flow labels; 0 = in no cuboid) and its cuboid
+(`instance_id_t0`: the index of the cuboid among the sweep's, the box that labelled the point; -1 = in no cuboid), for
+DeltaFlow's class and instance terms (`ff3d_tf.model.losses`). The last sweep of a log has no partner.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import beam_job, pair_records, pairs
 from ff3d_tf.data.av2 import argoverse2
 from ff3d_tf.data.pairs import make_pair
-from ff3d_tf.labels.box_flow import bootstrap_flow, points_in_boxes
+from ff3d_tf.labels.box_flow import bootstrap_flow
 
 _LOG = logging.getLogger(__name__)
 AV2_EXTRAS = schema.AV2_RECORD_EXTRAS
@@ -81,16 +82,17 @@ def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig) -> dict:
                                                    "x", "empty sweep: no points")
     boxes_t0 = argoverse2.cuboids(log_dir, ts_t0)
     dt_s = (ts_next - ts_t0) * 1e-9
-    flow, cls = bootstrap_flow(f_t0["points_xyz"], boxes_t0, argoverse2.cuboids(log_dir, ts_next), f_t0["pose"],
-                               f_next["pose"], dt_s, enlarge_m=argoverse2.CUBOID_MARGIN_M)
+    flow, cls, owner = bootstrap_flow(f_t0["points_xyz"], boxes_t0, argoverse2.cuboids(log_dir, ts_next),
+                                      f_t0["pose"], f_next["pose"], dt_s, enlarge_m=argoverse2.CUBOID_MARGIN_M,
+                                      with_instances=True)
     f_t0["flow_mps"], f_t0["class_id"] = flow, cls
     ex = make_pair({k: tf.constant(v) for k, v in f_next.items()}, {k: tf.constant(v) for k, v in f_t0.items()},
                    pairs.raw_pair_config(cfg))
     ex = {k: v.numpy() for k, v in ex.items()}
-    owner = points_in_boxes(f_t0["points_xyz"], boxes_t0, enlarge_m=argoverse2.CUBOID_MARGIN_M)
     categories = np.array([argoverse2.scene_flow_category_index(str(c)) for c in boxes_t0["category"]] + [0],
                           np.int32)
     ex["category_t0"] = categories[owner]  # owner -1 (no cuboid) reads the appended 0
+    ex["instance_id_t0"] = owner  # the cuboid (track) of each point, by its index among the sweep's cuboids
     ex["is_ground_t0"] = argoverse2.is_ground(log_dir, f_t0["points_xyz"], f_t0["pose"])
     ex["is_ground_tm1"] = argoverse2.is_ground(log_dir, f_next["points_xyz"], f_next["pose"])  # the partner's
     ex[pair_records.TIMESTAMP_KEY], ex[pair_records.PARTNER_TIMESTAMP_KEY] = ts_t0, ts_next

@@ -6,6 +6,10 @@ again with `range_image_flow_compressed` filled in the release's format ([H,W,4]
 reader and training take them unchanged. Points in no-label zones (range image channel is_in_nlz > 0) get class -1;
 pixels without a return hold zeros and class -1. The first frame of a segment has no t-1 boxes: its object points get
 class -1.
+
+The range image format has no place for the box each point belongs to; `run_wod_records_job` writes the pair records
+of labelled segments (`ff3d_tf.data.wod.write_records`) with that box (`instance_id_t0`, from the frames'
+`laser_labels` by the rule the labels came from), for DeltaFlow's instance term (`ff3d_tf.model.losses`).
 """
 from __future__ import annotations
 
@@ -18,9 +22,10 @@ import time
 import numpy as np
 
 from ff3d_tf import schema
-from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow
-from ff3d_tf.data import beam_job
-from ff3d_tf.data.wod import waymo
+from ff3d_tf.labels.box_flow import boxes_from_wod_labels, bootstrap_flow, points_in_boxes
+from ff3d_tf.data import beam_job, pair_records
+from ff3d_tf.data.wod_errors import FrameDecodeError
+from ff3d_tf.data.wod import waymo, write_records
 from ff3d_tf.data.wod.wod_decode import DecodeOptions
 from ff3d_tf.data.wod.wod_format import encode_matrix
 from ff3d_tf.parallel import ordered_map
@@ -199,3 +204,45 @@ def run_pipeline(input_files: list[str], out_dir: str, beam_args: list[str] | No
     return beam_job.run_per_input(
         list(input_files), functools.partial(_annotate_into, out_dir, laser_names, returns, skip_bad_records),
         out_dir, "annotate_flow", beam_args, result_name="annotation_counts.json")
+
+
+# The extras `run_wod_records_job` adds to WOD pair records.
+WOD_RECORD_EXTRAS = ("instance_id_t0",)
+
+
+def instance_ids_of_segment(segment_path: str, skip_bad_records: bool = False):
+    """fn(pair example, NumPy) -> {"instance_id_t0": int32 [N0]}: the labelled box each t0 point is in, -1 for none.
+
+    The boxes are the t0 frame's `laser_labels` (types 1..4, `boxes_from_wod_labels`), numbered by their place among
+    them, and the test is `bootstrap_flow`'s (`points_in_boxes`, the same tolerance): each point's id is the box its
+    flow and class come from. The segment's labels are read once here (a frame per record, matched to a pair by its
+    t0 timestamp); a record that does not parse is skipped with `skip_bad_records` (its frame gives no pair).
+    """
+    from google.protobuf.message import DecodeError
+    from waymo_open_dataset import dataset_pb2
+    boxes_at = {}
+    for index, record in waymo.iterate_records(segment_path, skip_bad_records=skip_bad_records):
+        try:
+            frame = dataset_pb2.Frame.FromString(record)
+        except DecodeError as err:
+            if skip_bad_records:
+                continue
+            raise FrameDecodeError(segment_path, index, "record", f"not a Frame ({err})") from None
+        boxes_at[int(frame.timestamp_micros)] = boxes_from_wod_labels(frame.laser_labels)
+
+    def instance_ids(example: dict) -> dict:
+        micros = int(example[pair_records.TIMESTAMP_KEY]) // 1000
+        if micros not in boxes_at:
+            raise ValueError(f"{segment_path}: no frame at {micros} us for the pair's t0 cloud")
+        return {"instance_id_t0": points_in_boxes(example["points_xyz_t0"], boxes_at[micros])}
+
+    return instance_ids
+
+
+def run_wod_records_job(files: list[str], out_dir: str, cfg, precision: str = "exact", compression: str = "none",
+                        beam_args: list[str] | None = None, written_by: str = "") -> dict:
+    """Pair records of labelled WOD segments (`write_records.run_wod_job`) that also hold `WOD_RECORD_EXTRAS`
+    (`instance_ids_of_segment`)."""
+    add_extras = functools.partial(instance_ids_of_segment, skip_bad_records=cfg.data.skip_bad_records)
+    return write_records.run_wod_job(files, out_dir, cfg, precision, compression, beam_args, written_by,
+                                     human_labels=True, extras=WOD_RECORD_EXTRAS, add_extras=add_extras)

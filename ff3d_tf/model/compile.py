@@ -84,6 +84,29 @@ def xla_function(fn):
     return tf.function(fn, jit_compile=True, autograph=False)
 
 
+# How compile mode hybrid splits the point encoding into XLA programs (`hybrid_encode`): "per_cloud" (the default)
+# or "one" (both clouds in one program, the layout before the split; kept for the studies that compare the two).
+HYBRID_POINT_PROGRAMS = ("per_cloud", "one")
+hybrid_point_programs = "per_cloud"
+
+
+def hybrid_encode(encode_points, inputs, training):
+    """The point encoding of compile mode hybrid: `encode_points(inputs, training, stage=...)` (a model's
+    `FastFlow3D.encode_points`) with its parts as XLA programs of their own.
+
+    XLA's CPU backend runs a scatter on one thread and the instructions of one program one after another, so the two
+    clouds' pillar scatters in one program take one core each in turn. As separate programs (the pillar cells of each
+    cloud, the statistics of training, each cloud's encoding and scatter, `PointEncoder.call`'s `stage`), the clouds
+    depend on nothing of each other and TensorFlow's executor runs them at the same time on its inter-op threads; so
+    do their gradient programs. The values are those of one program. `hybrid_point_programs = "one"` keeps the single
+    program."""
+    if hybrid_point_programs not in HYBRID_POINT_PROGRAMS:
+        raise ValueError(f"hybrid_point_programs={hybrid_point_programs!r}: one of {', '.join(HYBRID_POINT_PROGRAMS)}")
+    if hybrid_point_programs == "one":
+        return xla_function(lambda x: encode_points(x, training))(inputs)
+    return encode_points(inputs, training, stage=xla_function)
+
+
 def cpu_bf16_support(cpuinfo: str | None = None) -> tuple[str, tuple[str, ...]]:
     """(vendor, flags): the "vendor_id" of `cpuinfo` (the text of /proc/cpuinfo; default: this machine's,
     `ff3d_tf.cpu.read_cpuinfo`), e.g. "GenuineIntel" or "AuthenticAMD" ("" if none), and the flags of

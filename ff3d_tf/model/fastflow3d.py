@@ -7,7 +7,8 @@ Outputs (dict): flow_mps [B,N0,3] (m/s, vehicle frame at t0; 0 where invalid), p
 
 Both clouds share the point encoder (A) and the convolutional encoder (C-R): the two frames are stacked along the
 batch axis and pass through the same layers once. The decoder (S, T, U, V) takes the depth-wise concatenation of the
-two encoders' layers (t0 first), and the head (W-Z) regresses flow for the t0 points.
+two encoders' layers (t0 first), and the head (W-Z) regresses flow for the t0 points. `head="gru"` replaces rows
+W-Z with DeFlow's GRU point decoder (`ff3d_tf.model.gru_head.GRUHead`, Zhang et al., ICRA 2024).
 
 Precision: the dense stages (rows C-V) compute in the dtype of the global Keras policy while the model is built
 (`build_model`: "mixed_bfloat16" for `model.mixed_precision` resolved to bfloat16, see `ff3d_tf.model.compile`); the
@@ -25,6 +26,7 @@ import tensorflow as tf
 from ff3d_tf import schema
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.model import compile as compile_lib
+from ff3d_tf.model import gru_head
 from ff3d_tf.model import layers as L
 from ff3d_tf.model import ops
 
@@ -46,13 +48,17 @@ class FastFlow3D(keras.Model):
     `inline_stages=True` (one program, whatever the mode). `ff3d_tf.model.compile` resolves the config's "auto".
     `conv_dtype` (float32 or bfloat16) is the compute dtype of the dense stages, set by the global dtype policy at
     construction; the point stages are float32 layers whatever the policy.
-    `point_chunk_size`: points (over the flattened batch) that the point encoder encodes and scatters at a time.
+    `point_chunk_size`: points (over the flattened batch) that the point encoder encodes and scatters at a time, and
+    that the GRU head decodes at a time.
+    `head`: "paper" (rows W-Z: `head_y`, `head_z`) or "gru" (`head_gru`: DeFlow's GRU point decoder, its hidden state
+    the point's pillar embedding of both clouds and the decoder's output there, 3C wide; its input the offset from the
+    pillar centre encoded to C values; `gru_iterations` steps; an MLP of `head_hidden_dim` hidden units to the flow).
     """
 
     # Keyword-only, the paper's values without defaults: they live in `ff3d_tf.config` alone (`model_kwargs`).
     def __init__(self, *, num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, point_feature_dim,
                  encoder_widths, encoder_depths, decoder_dims, head_hidden_dim, zero_init_output=False,
-                 compile_mode="none", point_chunk_size=ops.POINT_CHUNK, **kwargs):
+                 compile_mode="none", point_chunk_size=ops.POINT_CHUNK, head="paper", gru_iterations=4, **kwargs):
         super().__init__(**kwargs)
         self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
         self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
@@ -64,6 +70,9 @@ class FastFlow3D(keras.Model):
         self.zero_init_output = bool(zero_init_output)
         self.compile_mode = compile_lib.check_resolved(compile_mode)
         self.point_chunk_size = int(point_chunk_size)
+        if head not in ("paper", "gru"):
+            raise ValueError(f"head={head!r}: paper or gru")
+        self.head, self.gru_iterations = head, int(gru_iterations)
 
         # The point stages in float32 under any global policy: pillar indices and offsets (a bfloat16 x would move
         # points across pillars), the point encoder and its pillar sums, and the head. XLA's CPU backend has no
@@ -89,9 +98,14 @@ class FastFlow3D(keras.Model):
             self.upsample_skips.append(getattr(self, f"upsample_{n}"))
         self.conv_v = keras.layers.Conv2D(self.decoder_dims[-1][0], 3, padding="same", use_bias=False,
                                           kernel_initializer="glorot_uniform", name="V")
-        self.head_y = L.UngridHead(self.head_hidden_dim, name="Y", dtype="float32")
-        self.head_z = keras.layers.Dense(3, kernel_initializer="zeros" if self.zero_init_output else "glorot_uniform",
-                                         name="Z", dtype="float32")
+        if self.head == "paper":
+            self.head_y = L.UngridHead(self.head_hidden_dim, name="Y", dtype="float32")
+            self.head_z = keras.layers.Dense(3, kernel_initializer="zeros" if self.zero_init_output else
+                                             "glorot_uniform", name="Z", dtype="float32")
+        else:
+            self.head_gru = gru_head.GRUHead(
+                input_units=self.point_feature_dim, mlp_units=self.head_hidden_dim, iterations=self.gru_iterations,
+                chunk_size=self.point_chunk_size, zero_init_output=self.zero_init_output, name="gru", dtype="float32")
 
     @property
     def conv_dtype(self) -> str:
@@ -118,8 +132,11 @@ class FastFlow3D(keras.Model):
             block.build((x_shape, both(skip)))
             x_shape = both(skip)[:-1] + (block.depth,)
         self.conv_v.build(x_shape)
-        self.head_y.build(((None, h, w, self.conv_v.filters), (None, None, c), (None, None, 8), (None, None)))
-        self.head_z.build((None, None, self.head_hidden_dim))
+        if self.head == "paper":
+            self.head_y.build(((None, h, w, self.conv_v.filters), (None, None, c), (None, None, 8), (None, None)))
+            self.head_z.build((None, None, self.head_hidden_dim))
+        else:  # hidden state: the pillar embeddings at t0 and t-1, the decoder's output
+            self.head_gru.build([(None, h, w, c), (None, h, w, c), (None, h, w, self.conv_v.filters)])
         self.built = True
 
     def call(self, inputs, training=False, inline_stages=False):
@@ -133,7 +150,7 @@ class FastFlow3D(keras.Model):
         # values that stand in for them) of the graph being traced.
         if self.compile_mode == "xla":
             return compile_lib.xla_function(lambda x: self._forward(x, training))(inputs)
-        encoded = compile_lib.xla_function(lambda x: self.encode_points(x, training))(inputs)
+        encoded = compile_lib.hybrid_encode(self.encode_points, inputs, training)
         grid_flow_embedding = self.dense_stages(encoded["bev_features"], training)
         return compile_lib.xla_function(self.decode_points)(grid_flow_embedding, encoded)
 
@@ -141,7 +158,7 @@ class FastFlow3D(keras.Model):
         encoded = self.encode_points(inputs, training)
         return self.decode_points(self.dense_stages(encoded["bev_features"], training), encoded)
 
-    def encode_points(self, inputs, training=False):
+    def encode_points(self, inputs, training=False, stage=None):
         """Rows A and B on both clouds (shared weights, one set of BN statistics over both), and the part of the head
         that needs no grid.
 
@@ -151,23 +168,29 @@ class FastFlow3D(keras.Model):
 
         Returns a dict: bev_features [2B,H,W,C] (t0 samples first, then t-1; the float32 pillar sums in
         `conv_dtype`, cast here so that XLA fuses the cast with the concatenation), and for the head: point_flow_t0
-        [B,N0,3] (m/s, float32; the flow without the grid part and the bias), pillar_ids_t0 [B,N0], point_valid_t0
-        [B,N0].
+        [B,N0,3] (m/s, float32; the flow without the grid part and the bias; paper head) or point_rows_t0 [B,N0,5]
+        (`Pillarize.point_rows`, from which the GRU head computes each chunk's offsets), pillar_ids_t0 [B,N0],
+        point_valid_t0 [B,N0].
+        `stage`: None (traced inline), or what makes each part its own program (`compile_lib.hybrid_encode`).
         """
         clouds = [(inputs[xyz], inputs[features], tf.cast(inputs[mask], tf.bool)) for xyz, features, mask in
                   (("points_xyz_t0", "point_features_t0", "point_mask_t0"),
                    ("points_xyz_tm1_in_t0", "point_features_tm1", "point_mask_tm1"))]
-        (ids_t0, valid_t0), (ids_tm1, valid_tm1) = [self.pillarize.cells(*cloud) for cloud in clouds]
-        _, k_point, k_encoding, _ = self.head_y.composed_with(self.head_z)
-        head_point_kernel = tf.concat([k_point, k_encoding], 0)  # [C + 8, 3]: (point feature, encoding) -> flow
+        (ids_t0, valid_t0), (ids_tm1, valid_tm1) = [(stage or (lambda f: f))(self.pillarize.cells)(*cloud)
+                                                    for cloud in clouds]
+        point_rows = [self.pillarize.point_rows(xyz, features) for xyz, features, _ in clouds]
+        head_point_kernel = None
+        if self.head == "paper":
+            _, k_point, k_encoding, _ = self.head_y.composed_with(self.head_z)
+            head_point_kernel = tf.concat([k_point, k_encoding], 0)  # [C + 8, 3]: (point feature, encoding) -> flow
         # The point encoder encodes each chunk of points itself (`Pillarize.encode`): no [N, 8] encoding is stored.
         (grid_t0, grid_tm1), (point_flow_t0, _) = self.point_encoder(
-            [self.pillarize.point_rows(xyz, features) for xyz, features, _ in clouds], [valid_t0, valid_tm1],
-            [ids_t0, ids_tm1], point_projections=(head_point_kernel, None), encode=self.pillarize.encode,
-            training=training)
-        return {"bev_features": tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_dtype),
-                "point_flow_t0": tf.cast(point_flow_t0, tf.float32), "pillar_ids_t0": ids_t0,
-                "point_valid_t0": valid_t0}
+            point_rows, [valid_t0, valid_tm1], [ids_t0, ids_tm1], point_projections=(head_point_kernel, None),
+            encode=self.pillarize.encode, training=training, stage=stage)
+        head_inputs = ({"point_flow_t0": tf.cast(point_flow_t0, tf.float32)} if self.head == "paper" else
+                       {"point_rows_t0": point_rows[0]})
+        return {"bev_features": tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_dtype), **head_inputs,
+                "pillar_ids_t0": ids_t0, "point_valid_t0": valid_t0}
 
     def dense_stages(self, bev_features, training=False):
         """Rows C-V: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> grid flow
@@ -191,8 +214,19 @@ class FastFlow3D(keras.Model):
     def decode_points(self, grid_flow_embedding, encoded):
         """Rows W-Z: flow of the t0 points. `encoded` is `encode_points`'s dict; returns flow_mps [B,N0,3] (0 where
         invalid) and point_valid [B,N0]. The head's grid part is applied on the grid (3 values per cell); each point
-        takes its cell's (row W) and adds its own part (`point_flow_t0`) and the bias."""
+        takes its cell's (row W) and adds its own part (`point_flow_t0`) and the bias.
+
+        With the GRU head: each point's hidden state starts at its pillar's cells of the two clouds' pillar embeddings
+        (`bev_features`, before the U-Net) and of `grid_flow_embedding`, concatenated; its input is its offset from
+        the pillar centre (channels 3-5 of `Pillarize.encode`, computed chunk by chunk from `point_rows_t0`). The
+        grids enter in their own dtype (bfloat16 under mixed precision), one chunk of points at a time cast to the
+        head's float32."""
         valid = encoded["point_valid_t0"]
+        if self.head == "gru":
+            bev_t0, bev_tm1 = tf.split(encoded["bev_features"], 2, axis=0)
+            flow = self.head_gru.decode([bev_t0, bev_tm1, grid_flow_embedding], encoded["point_rows_t0"],
+                                        encoded["pillar_ids_t0"], valid, encode=self._point_offsets)
+            return {"flow_mps": flow, "point_valid": valid}
         k_grid, _, _, bias = self.head_y.composed_with(self.head_z)
         # The head in float32 also after bfloat16 convolutions (the cast fuses into the projection under XLA).
         cell_flow = ops.dense_last_axis(tf.cast(grid_flow_embedding, tf.float32), k_grid)
@@ -200,14 +234,21 @@ class FastFlow3D(keras.Model):
         flow = tf.where(valid[..., None], flow, tf.zeros_like(flow))
         return {"flow_mps": flow, "point_valid": valid}
 
+    def _point_offsets(self, point_rows, point_valid):
+        """[P,3]: (dx, dy, dz) in metres from the pillar centre, channels 3-5 of the encoding of `point_rows` [P,5]
+        (`Pillarize.encode`), 0 where `point_valid` [P] is False."""
+        return self.pillarize.encode(point_rows, point_valid)[:, 3:6]
+
     def table_rows(self) -> list[tuple[str, int]]:
-        """(row, parameter count) in the order of the paper's table."""
+        """(row, parameter count) in the order of the paper's table (with the GRU head: rows A-W, then the head's
+        layers, `GRUHead.table_rows`)."""
         rows = [("A", self.point_encoder.count_params()), ("B", 0)]
         rows += [(b.name, b.count_params()) for stage in self.encoder_stages for b in stage]
         rows += [(u.name, u.count_params()) for u in self.upsample_skips]
-        rows += [("V", self.conv_v.count_params()), ("W", 0), ("X", 0), ("Y", self.head_y.count_params()),
-                 ("Z", self.head_z.count_params())]
-        return rows
+        rows += [("V", self.conv_v.count_params()), ("W", 0)]
+        if self.head == "gru":  # W: each point takes its pillar's cells; then DeFlow's GRU decoder
+            return rows + self.head_gru.table_rows()
+        return rows + [("X", 0), ("Y", self.head_y.count_params()), ("Z", self.head_z.count_params())]
 
     def get_config(self):
         return {**super().get_config(), "num_pillars_x": self.num_pillars_x, "num_pillars_y": self.num_pillars_y,
@@ -215,7 +256,8 @@ class FastFlow3D(keras.Model):
                 "point_feature_dim": self.point_feature_dim, "encoder_widths": self.encoder_widths,
                 "encoder_depths": self.encoder_depths, "decoder_dims": self.decoder_dims,
                 "head_hidden_dim": self.head_hidden_dim, "zero_init_output": self.zero_init_output,
-                "compile_mode": self.compile_mode, "point_chunk_size": self.point_chunk_size}
+                "compile_mode": self.compile_mode, "point_chunk_size": self.point_chunk_size, "head": self.head,
+                "gru_iterations": self.gru_iterations}
 
 
 def model_kwargs(cfg: ExperimentConfig) -> dict:
@@ -224,7 +266,8 @@ def model_kwargs(cfg: ExperimentConfig) -> dict:
     return dict(num_pillars_x=g.num_pillars_x, num_pillars_y=g.num_pillars_y, x_range_m=g.x_range_m,
                 y_range_m=g.y_range_m, z_range_m=g.z_range_m, point_feature_dim=m.point_feature_dim,
                 encoder_widths=m.encoder_widths, encoder_depths=m.encoder_depths, decoder_dims=m.decoder_dims,
-                head_hidden_dim=m.head_hidden_dim, zero_init_output=m.zero_init_output)
+                head_hidden_dim=m.head_hidden_dim, zero_init_output=m.zero_init_output, head=m.head,
+                gru_iterations=m.gru_iterations)
 
 
 def build_model(cfg: ExperimentConfig, compile_mode: str | None = None,

@@ -190,7 +190,13 @@ class PointEncoder(keras.layers.Layer):
         self.norm.build(input_shape)
         self.dense.build(input_shape)
 
-    def call(self, points, point_valid, pillar_ids, point_projections=None, encode=None, training=False):
+    def call(self, points, point_valid, pillar_ids, point_projections=None, encode=None, training=False,
+             stage=None):
+        """`stage`: None (everything traced inline, in the caller's graph or XLA program), or a function that makes
+        a function its own program (`ff3d_tf.model.compile.xla_function`): the statistics of training, then each
+        cloud's encoding and scatter, are then separate programs. The clouds' programs depend on nothing of each
+        other, so TensorFlow's executor runs them at the same time on its inter-op threads (compile mode hybrid on a
+        CPU, where XLA runs a scatter on one thread)."""
         single = not isinstance(points, (list, tuple))
         if single:
             points, point_valid, pillar_ids = [points], [point_valid], [pillar_ids]
@@ -201,11 +207,18 @@ class PointEncoder(keras.layers.Layer):
         encode = encode or (lambda encoding, valid: encoding)
         # Joint statistics of the whole clouds' encodings in training (inference takes the moving ones, and the
         # points only for their dtype); the normalisation itself is applied chunk by chunk.
-        normalizer = self.norm.normalizer([encode(p, v) for p, v in zip(points, point_valid)] if training else points,
-                                          list(point_valid), training=training)
+        if training:
+            def statistics(points, point_valid):
+                return self.norm.normalizer([encode(p, v) for p, v in zip(points, point_valid)], list(point_valid),
+                                            training=True)
+            normalizer = (stage(statistics) if stage else statistics)(points, list(point_valid))
+        else:
+            normalizer = self.norm.normalizer(points, list(point_valid), training=False)
         grids, projected = [], []
         for cloud, valid, ids, projection in zip(points, point_valid, pillar_ids, point_projections):
-            grid, rows = self._encode_and_scatter(cloud, valid, ids, normalizer, projection, encode)
+            def encode_cloud(cloud, valid, ids, normalizer, projection=projection):
+                return self._encode_and_scatter(cloud, valid, ids, normalizer, projection, encode)
+            grid, rows = (stage(encode_cloud) if stage else encode_cloud)(cloud, valid, ids, list(normalizer))
             grids.append(grid)
             projected.append(rows)
         return (grids[0], projected[0]) if single else (grids, projected)

@@ -72,9 +72,10 @@ class StepResult(NamedTuple):
 
 def loss_and_grads_fn(cfg: ExperimentConfig, model, global_batch_size: int, inline_stages: bool = False,
                       on_variables: bool = False):
-    """`(weights, bn_statistics, batch) -> (loss, grads, new_bn_statistics)`: `batch_flow_loss` of `model` run with
-    `training=True` on `batch` (inputs and labels; the loss divided by `global_batch_size`), its gradients with
-    respect to the weights, and the BatchNorm statistics that forward updated.
+    """`(weights, bn_statistics, batch) -> (loss, grads, new_bn_statistics)`: `batch_flow_loss` (`train.loss`) of
+    `model` run with `training=True` on `batch` (inputs, labels and the extras the loss reads; the loss divided by
+    `global_batch_size`), its gradients with respect to the weights, and the BatchNorm statistics that forward
+    updated.
 
     Stateless (default): the model runs on the given values (`model.stateless_call`) and no variable changes.
     `on_variables`: the model runs on its own variables, which must hold `weights` and `bn_statistics` (the Trainer,
@@ -94,7 +95,7 @@ def loss_and_grads_fn(cfg: ExperimentConfig, model, global_batch_size: int, inli
                 outputs, new_bn_statistics = model.stateless_call(weights, bn_statistics, model_inputs(batch),
                                                                   training=True, inline_stages=inline_stages)
             loss = batch_flow_loss(batch, outputs, cfg.train.background_weight, global_batch_size,
-                                   pseudo_labels=cfg.data.labels == "pseudo")
+                                   pseudo_labels=cfg.data.labels == "pseudo", loss=cfg.train.loss)
         return loss, tape.gradient(loss, sources), list(new_bn_statistics)
 
     return loss_and_grads

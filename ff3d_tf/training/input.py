@@ -1,16 +1,21 @@
 """The training input: which files a run trains on and the stream of batches the Trainer reads from them.
 
 `training_files` applies `data.max_training_segments` (the data-size study's cap: the first N files); `training_dataset`
-is the repeated, shuffled, batched and bucketed stream, read here or by the workers of a tf.data service
-(`ff3d_tf.training.data_service`). Every reader of the training input (the Trainer, tools/benchmark_input.py,
-tools/benchmark_training.py) goes through them, so each trains on the same files in the same order.
+is the repeated, shuffled, augmented (`data.augment_*`), batched and bucketed stream, read here or by the workers of
+a tf.data service (`ff3d_tf.training.data_service`), with the record extras the loss reads (`loss_extras`). Every
+reader of the training input (the Trainer, tools/benchmark_input.py, tools/benchmark_training.py) goes through them,
+so each trains on the same files in the same order.
 """
 from __future__ import annotations
 
 import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
-from ff3d_tf.data import pairs
+from ff3d_tf.data import augment, pair_records, pairs
+
+# The record extras `train.loss=deltaflow` reads where the pair records hold them: the Argoverse 2 category of each
+# point (its meta-class; otherwise the paper class gives it) and its instance (otherwise no instance term).
+DELTAFLOW_EXTRAS = ("category_t0", "instance_id_t0")
 
 DATA_SERVICE_JOB = "ff3d_train"  # trainers sharing a tf.data service job read disjoint batches of one stream
 
@@ -21,9 +26,53 @@ def training_files(files: list[str], cfg: ExperimentConfig) -> list[str]:
     return list(files[:cap] if cap else files)
 
 
+def loss_extras(files: list[str], cfg: ExperimentConfig) -> tuple[str, ...]:
+    """The extras of `files` (pair records) that the configured loss reads: for deltaflow, those of
+    `DELTAFLOW_EXTRAS` the records' manifest lists; none for the other losses or for WOD segments."""
+    if cfg.train.loss != "deltaflow" or cfg.data.source != "pair_records" or not files:
+        return ()
+    held = pair_records.manifest_of_files(list(files)).extras
+    return tuple(k for k in DELTAFLOW_EXTRAS if k in held)
+
+
+def loss_notice(files: list[str], cfg: ExperimentConfig) -> str | None:
+    """The line a trainer prints once at start when the loss runs reduced on `files`: deltaflow without instance
+    ids (WOD segments, or records written without them) trains without its instance term. None otherwise."""
+    if cfg.train.loss != "deltaflow" or "instance_id_t0" in loss_extras(files, cfg):
+        return None
+    return ("train.loss=deltaflow: the training data carries no instance ids (instance_id_t0; pair records written "
+            "from boxes carry them): training without DeltaFlow's instance term")
+
+
+def dense_instance_ids(instance_id):
+    """[N] int32: each pair's instance ids renumbered 0, 1, ... in order of first appearance (-1 stays -1), so that
+    every id is below the pair's point count (what the loss's instance term requires)."""
+    unique_ids, index = tf.unique(instance_id)
+    renumbered = tf.cumsum(tf.cast(unique_ids >= 0, tf.int32)) - 1
+    return tf.where(instance_id >= 0, tf.gather(renumbered, index), -1)
+
+
+def _training_transforms(ds: tf.data.Dataset, cfg: ExperimentConfig, shard) -> tf.data.Dataset:
+    """Per-example transforms of the repeated stream: dense instance ids, then the augmentation, drawn from the seed
+    (`train.seed`, the example's position in this pipeline's stream: a resume replays it, `shard` keeps the pipelines
+    of one job apart)."""
+    if "instance_id_t0" in ds.element_spec:
+        ds = ds.map(lambda ex: {**ex, "instance_id_t0": dense_instance_ids(ex["instance_id_t0"])},
+                    num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+    if not augment.is_enabled(cfg.data):
+        return ds
+    num_shards, shard_index = shard if shard is not None else (1, 0)
+
+    def augmented(position, ex):
+        seed = tf.stack([tf.constant(cfg.train.seed, tf.int64), position * num_shards + shard_index])
+        return augment.augment_example(ex, cfg.data, seed)
+
+    return ds.enumerate().map(augmented, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+
+
 def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, shard=None, skip_batches: int = 0,
                      data_service_address: str | None = None):
-    """Repeated, shuffled, batched and bucketed training examples of `training_files(files, cfg)`.
+    """Repeated, shuffled, augmented, batched and bucketed training examples of `training_files(files, cfg)`.
 
     Without a data service the order is seeded (the same on every run), so a resume fast-forwards `skip_batches`
     to the exact position. With `data_service_address` (grpc://host:port of a tf.data service dispatcher), decoding,
@@ -31,13 +80,15 @@ def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, s
     every pair once per epoch) and batches arrive in the order workers finish them: training resumes from its
     checkpoint at the same step with the same weights, but the data order is not replayed.
     """
-    # data.labels: the human labels or pseudo-labels
-    ds = pairs.pair_dataset(training_files(files, cfg), cfg, training_labels=True)
+    # data.labels: the human labels or pseudo-labels; the extras the loss reads
+    files = training_files(files, cfg)
+    ds = pairs.pair_dataset(files, cfg, training_labels=True, extras=loss_extras(files, cfg))
     if shard is not None and not data_service_address:
         ds = ds.shard(*shard)
     if cfg.data.cache_decoded:
         ds = ds.cache()
     ds = ds.shuffle(cfg.data.shuffle_buffer, seed=cfg.train.seed, reshuffle_each_iteration=True).repeat()
+    ds = _training_transforms(ds, cfg, None if data_service_address else shard)
     ds = pairs.batch_examples(ds, batch_size, cfg.data.point_bucket_base, drop_remainder=True)
     if data_service_address:
         ds = ds.apply(tf.data.experimental.service.distribute(

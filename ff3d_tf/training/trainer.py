@@ -42,7 +42,7 @@ from ff3d_tf.training.cluster import (EXIT_PREEMPTED, PeerLostError, Watchdog, c
                                       lost_peer_error, lost_task, make_strategy, replica_stop_requests, short_reason,
                                       stop_request_bit, tasks_in_stop_mask)
 from ff3d_tf.training.evaluation import evaluate, write_summaries
-from ff3d_tf.training.input import training_dataset, training_files
+from ff3d_tf.training.input import loss_notice, training_dataset, training_files
 
 _LOG = logging.getLogger(__name__)
 
@@ -97,6 +97,8 @@ class Trainer:
         self._decode_options = pairs.decode_options(cfg)  # how a bad input record is re-read to name it
         self.is_chief, self._write_dir = _chief_and_write_dir(self.strategy, model_dir)
         self.log = log_fn if self.is_chief else (lambda s: log_fn(f"[worker] {s}"))
+        if notice := loss_notice(self.train_files, cfg):
+            self.log(notice)  # once, at start: the loss runs without a term its data lacks
         self._stop_signal = None
         self._last_saved_step = None
         self._steps_done = 0  # the last step this process finished (the watchdog's message)

@@ -1,6 +1,6 @@
 """ONNX export (ff3d_tf/inference/onnx_export.py): onnxruntime against TensorFlow's serving forward, NaN points,
 empty clouds, determinism with 2 threads, the graph's ops, the conversion handlers against NumPy, the loop-free
-point encoder (ops.ONE_CHUNK) and tools/export_onnx.py."""
+point encoder (ops.ONE_CHUNK) and tools/export_onnx.py; both variants with the GRU head (model.head=gru)."""
 import subprocess
 import sys
 
@@ -301,3 +301,84 @@ def test_paper_model_at_32k_points(tmp_path):
     np.testing.assert_allclose(out["flow_mps"], flow_tf, atol=1e-3, rtol=0)
     np.testing.assert_array_equal(out["flow_mps"][~valid_tf], 0.0)
     np.testing.assert_array_equal(predictor(pts1, pts0, POSE_TM1, POSE_T0)["flow_mps"], out["flow_mps"])
+
+
+# -- the GRU head (model.head=gru) ----------------------------------------------------------------------------------
+
+# The GRU head adds its gates' and GELU's activations; it writes no chunk rows (ScatterND) and clips no cell index
+# from above (Min: the paper head's ungrid).
+GRU_SINGLE_CHUNK_OPS = (SINGLE_CHUNK_OPS - {"Min", "ScatterND"}) | {"Erf", "Sigmoid", "Tanh"}
+
+
+@pytest.fixture(scope="module")
+def exported_gru(tiny_config, tmp_path_factory):
+    """The tiny model with DeFlow's GRU head, its TensorFlow serving function and both exports; the loop variant with
+    256-point chunks (`ops.POINT_CHUNK` patched for the export), so that a few hundred points take several turns of
+    the encoder's and the head's loops."""
+    from ff3d_tf.config import replace_config
+    cfg = replace_config(tiny_config, {"model.head": "gru"})
+    tmp = tmp_path_factory.mktemp("onnx_gru")
+    model = build_model(cfg)
+    paths = {v: str(tmp / f"{v}.onnx") for v in ox.VARIANTS}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(ops, "POINT_CHUNK", 256)
+        assert ox.export_twin(model, "loop").head_gru.chunk_size == 256
+        ox.export_onnx(model, paths["loop"], "loop")
+    info = ox.export_onnx(model, paths["single_chunk"], "single_chunk")
+    module = FlowServingModule(model, cfg.data.point_bucket_base, jit_compile=False)
+    return {"model": model, "module": module, "info": info, "paths": paths}
+
+
+@pytest.mark.parametrize("variant", ox.VARIANTS)
+def test_gru_head_onnxruntime_matches_tensorflow(exported_gru, variant):
+    predictor = ox.OnnxFlowPredictor(exported_gru["paths"][variant], intra_op_threads=2)
+    rng = np.random.default_rng(5)
+    for n0, n1 in ((700, 650), (40, 900), (0, 30), (25, 0), (0, 0)):
+        pts0, pts1 = _cloud(rng, n0), _cloud(rng, n1)
+        pts0[np.arange(n0) % 9 == 4, 0] = np.nan
+        pts1[np.arange(n1) % 11 == 2, 1] = np.inf
+        flow_tf, valid_tf = _tensorflow(exported_gru["module"], pts1, pts0)
+        out = predictor(pts1, pts0, POSE_TM1, POSE_T0)
+        flow, valid = out["flow_mps"], out["point_valid"]
+        assert flow.shape == (n0, 3) and valid.shape == (n0,)
+        np.testing.assert_array_equal(valid, valid_tf)
+        assert np.isfinite(flow).all()
+        np.testing.assert_array_equal(flow[~valid], 0.0)
+        if n0:
+            np.testing.assert_allclose(flow, flow_tf, atol=1e-4 + 4e-6 * np.abs(flow_tf).max(), rtol=0)
+        if n0 > 100:
+            assert 0.3 * n0 < valid.sum() < 0.95 * n0 and np.abs(flow_tf).max() > 1.0
+
+
+def test_gru_head_graph_ops(exported_gru):
+    loop, single = (onnx.load(exported_gru["paths"][v]) for v in ox.VARIANTS)
+    assert ("", "Loop") in ox.graph_ops(loop)
+    single_ops = {op for _, op in ox.graph_ops(single)}
+    assert single_ops == GRU_SINGLE_CHUNK_OPS, (single_ops - GRU_SINGLE_CHUNK_OPS, GRU_SINGLE_CHUNK_OPS - single_ops)
+    assert not single_ops & set(ox.CONTROL_FLOW_OPS)
+    assert [i.type.tensor_type.elem_type for i in single.graph.input] == [TensorProto.FLOAT] * 3
+    assert not [n for n in _all_nodes(single) if n.op_type == "Cast" and
+                helper.get_attribute_value(n.attribute[0]) == TensorProto.DOUBLE]
+    assert not [t for t in single.graph.initializer if t.data_type == TensorProto.DOUBLE]
+
+
+def test_gru_head_paper_config_single_chunk_at_32k_points(tmp_path):
+    """The paper's grid and widths with the GRU head (random weights) at 32,000 points: the single_chunk graph (no
+    control flow, no float64) in onnxruntime within 1e-3 m/s of TensorFlow's serving forward, the same validity."""
+    from ff3d_tf.config import load_config
+    from conftest import ROOT
+    cfg = load_config(f"{ROOT}/configs/fastflow3d_waymo.yaml", ["model.head=gru"])
+    model = build_model(cfg)
+    path = str(tmp_path / "gru.onnx")
+    info = ox.export_onnx(model, path, "single_chunk")
+    assert not set(info["ops"]) & set(ox.CONTROL_FLOW_OPS) and info["pose_inputs"] == "relative_float32"
+    rng = np.random.default_rng(7)
+    pts0, pts1 = _cloud(rng, 32000, 90.0), _cloud(rng, 32000, 90.0)  # the grid is +-85 m
+    pts0[::97, 1] = np.nan
+    flow_tf, valid_tf = _tensorflow(FlowServingModule(model, cfg.data.point_bucket_base, cfg.model.jit_compile),
+                                    pts1, pts0)
+    out = ox.OnnxFlowPredictor(path, intra_op_threads=2)(pts1, pts0, POSE_TM1, POSE_T0)
+    np.testing.assert_array_equal(out["point_valid"], valid_tf)
+    assert valid_tf.sum() > 20000 and np.abs(flow_tf).max() > 1.0
+    np.testing.assert_allclose(out["flow_mps"], flow_tf, atol=1e-3, rtol=0)
+    np.testing.assert_array_equal(out["flow_mps"][~valid_tf], 0.0)

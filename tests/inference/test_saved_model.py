@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
+from ff3d_tf.config import replace_config
 from ff3d_tf.inference.saved_model import SavedModelPredictor, export_saved_model
 from ff3d_tf.model import build_model
 
@@ -14,8 +15,9 @@ def _pose(yaw, x):
     return m
 
 
-def test_saved_model_round_trip(tiny_config, tmp_path):
-    model = build_model(tiny_config)
+@pytest.mark.parametrize("head", ["paper", "gru"])
+def test_saved_model_round_trip(tiny_config, tmp_path, head):
+    model = build_model(replace_config(tiny_config, {"model.head": head}))
     path = export_saved_model(model, str(tmp_path / "sm"), bucket_base=256)
     predictor = SavedModelPredictor(path)
     rng = np.random.default_rng(0)

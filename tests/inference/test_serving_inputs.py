@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
+from ff3d_tf.config import replace_config
 from ff3d_tf.geometry import POSE_RIGIDITY_TOLERANCE as POSE_TOLERANCE, pose_problem_np as pose_problem
 from ff3d_tf.inference.saved_model import SavedModelPredictor, export_saved_model
 from ff3d_tf.model import build_model
@@ -28,10 +29,11 @@ def _cloud(rng, n, extent=30.0):
     return pts
 
 
-@pytest.fixture(scope="module")
-def served(tiny_config, tmp_path_factory):
-    """(SavedModelPredictor, the raw serving_default function) of a tiny model."""
-    path = export_saved_model(build_model(tiny_config), str(tmp_path_factory.mktemp("sm") / "sm"), bucket_base=256)
+@pytest.fixture(scope="module", params=["paper", "gru"])
+def served(request, tiny_config, tmp_path_factory):
+    """(SavedModelPredictor, the raw serving_default function) of a tiny model, with each head (`model.head`)."""
+    cfg = replace_config(tiny_config, {"model.head": request.param})
+    path = export_saved_model(build_model(cfg), str(tmp_path_factory.mktemp("sm") / "sm"), bucket_base=256)
     predictor = SavedModelPredictor(path)
     return predictor, predictor.fn
 

@@ -80,3 +80,17 @@ def test_an_empty_sweep_is_named(tiny_config, tmp_path):
     with pytest.raises(argoverse2.Argoverse2FormatError, match="empty sweep") as err:
         av2.challenge_pair(str(log), 0, tiny_config)
     assert err.value.path == str(sweep)
+
+
+def test_sample_record_holds_each_points_cuboid(av2_sample_records, tiny_config):
+    """`instance_id_t0`: the cuboid of each t0 point (its index among the sweep's cuboids), -1 outside every cuboid:
+    exactly the points with a category, one category per cuboid."""
+    (ex,) = _read(av2_sample_records, tiny_config)
+    ids, category = ex["instance_id_t0"], ex["category_t0"]
+    assert ids.dtype == np.int32
+    np.testing.assert_array_equal(ids >= 0, category > 0)
+    cuboids = argoverse2.cuboids(AV2_LOG, argoverse2.sweep_timestamps(AV2_LOG)[0])
+    assert ids.max() < len(cuboids["heading"])
+    for k in np.unique(ids[ids >= 0]):
+        (cat,) = np.unique(category[ids == k])
+        assert cat == argoverse2.scene_flow_category_index(str(cuboids["category"][k]))

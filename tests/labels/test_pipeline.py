@@ -164,3 +164,36 @@ def test_annotate_segment_bad_record(tiny_records, tmp_path):
     assert objects.sum() > 0 and np.all(frames[2]["class_id"][objects] == -1)
     np.testing.assert_array_equal(frames[2]["class_id"][orig[2]["class_id"] == 0], 0)
     np.testing.assert_array_equal(frames[3]["class_id"], orig[3]["class_id"])  # its t-1 (record 3) was read
+
+
+def test_wod_pair_records_hold_each_points_box(tiny_segment, tiny_records, tiny_config, tmp_path):
+    """WOD pair records written from labelled segments carry `instance_id_t0`: the box each t0 point is in, the one
+    its flow and class come from (`bootstrap_flow`'s instances)."""
+    from ff3d_tf.config import replace_config
+    from ff3d_tf.data import pair_records, pairs
+    from ff3d_tf.data.wod import write_records
+    from ff3d_tf.labels import pipeline
+    out = str(tmp_path / "records")
+    manifest = write_records.wod_manifest(tiny_config, extras=pipeline.WOD_RECORD_EXTRAS)
+    pair_records.write_manifest(out, manifest)
+    with pytest.raises(ValueError, match="add_extras"):
+        write_records.write_segment(tiny_segment, out, tiny_config, manifest)
+    assert write_records.write_segment(tiny_segment, out, tiny_config, manifest,
+                                       pipeline.instance_ids_of_segment)["pairs"] == 3
+    cfg = replace_config(tiny_config, {"data.source": "pair_records", "data.crop_to_grid": False})
+    got = [{k: v.numpy() for k, v in ex.items()} for ex in pairs.pair_dataset(
+        pairs.list_segment_files(out), cfg, extras=pipeline.WOD_RECORD_EXTRAS, metadata=True)]
+    frames = {dataset_pb2.Frame.FromString(r).timestamp_micros: dataset_pb2.Frame.FromString(r) for r in tiny_records}
+    moving_instances = 0
+    for ex in got:
+        ids, cls = ex["instance_id_t0"], ex["class_id_t0"]
+        boxes = boxes_from_wod_labels(frames[int(ex[pair_records.TIMESTAMP_KEY]) // 1000].laser_labels)
+        _, _, owner = bootstrap_flow(ex["points_xyz_t0"], boxes, {"track_id": np.zeros(0, str)}, np.eye(4), np.eye(4),
+                                     0.1, with_instances=True)
+        np.testing.assert_array_equal(ids, owner)
+        assert ids.dtype == np.int32 and ids.max() < len(boxes["heading"])
+        assert (ids[cls > 0] >= 0).all() and (ids[cls == 0] == -1).all()  # objects in a box, background in none
+        for k in np.unique(ids[ids >= 0]):  # one box, one class (or unlabelled)
+            assert len(set(cls[(ids == k) & (cls >= 0)].tolist())) <= 1
+            moving_instances += np.linalg.norm(ex["flow_mps_t0"][ids == k], axis=-1).mean() > 0.4
+    assert moving_instances > 0

@@ -19,6 +19,15 @@ def test_model_summary_last_line():
     assert any(line.split() == ["Y", "4,384"] for line in lines)
 
 
+def test_model_summary_of_the_gru_head():
+    lines = _run("tools/model_summary.py", "--config", "configs/fastflow3d_waymo.yaml", "--set",
+                 "model.head=gru").strip().splitlines()
+    assert lines[-1] == "total_params 5385699" and "head gru, 4 iterations" in lines[0]
+    rows = [line.split() for line in lines[1:-1]]
+    assert rows[-7:] == [["W", "0"], ["GRU-x", "256"], ["GRU-z", "49,344"], ["GRU-r", "49,344"],
+                         ["GRU-q", "49,344"], ["MLP-1", "8,224"], ["MLP-2", "99"]]
+
+
 def test_dataset_stats_table_and_png(tiny_segment, tmp_path):
     out = _run("tools/dataset_stats.py", "--data_dir", os.path.dirname(tiny_segment), "--out_dir", str(tmp_path))
     assert "vehicle" in out and "pedestrian" in out

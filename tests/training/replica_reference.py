@@ -2,8 +2,9 @@
 distributed and multi-worker tests).
 
 Semantics (the paper's setting, per-replica BatchNorm): each replica runs forward/backward on its own samples with its
-own batch statistics; the loss is summed over samples and divided by the global batch; gradients are summed over
-replicas and applied once; each BatchNorm moving statistic becomes the mean of the replicas' updated values.
+own batch statistics; the loss (`train.loss`) is summed over samples and divided by the global batch; gradients are
+summed over replicas and applied once; each BatchNorm moving statistic becomes the mean of the replicas' updated
+values.
 """
 import numpy as np
 import tensorflow as tf
@@ -12,7 +13,7 @@ from ff3d_tf.config import replace_config
 from ff3d_tf.data import pairs
 from ff3d_tf.model.forward import model_inputs
 from ff3d_tf.model import build_model
-from ff3d_tf.model.losses import per_sample_flow_loss
+from ff3d_tf.model.losses import per_sample_training_loss
 from ff3d_tf.model.step import make_optimizer
 
 GLOBAL_BATCH = 2
@@ -48,9 +49,8 @@ class Reference:
     def _sample_loss_and_grads(self, sample):
         with tf.GradientTape() as tape:
             out = self.model(model_inputs(sample), training=True, inline_stages=self.cfg.model.jit_compile)
-            valid = out["point_valid"] & sample["point_mask_t0"]
-            loss = tf.reduce_sum(per_sample_flow_loss(sample["flow_mps_t0"], out["flow_mps"], sample["class_id_t0"],
-                                                      valid, self.cfg.train.background_weight)) / GLOBAL_BATCH
+            loss = tf.reduce_sum(per_sample_training_loss(sample, out, self.cfg.train.background_weight,
+                                                          loss=self.cfg.train.loss)) / GLOBAL_BATCH
         return loss, tape.gradient(loss, self.model.trainable_variables)
 
     def step(self, batch):

@@ -6,6 +6,7 @@ import tensorflow as tf
 
 from replica_reference import GLOBAL_BATCH, Reference, batches, replica_config
 
+from ff3d_tf.config import replace_config
 from ff3d_tf.training.trainer import Trainer
 
 
@@ -39,6 +40,51 @@ def test_two_replicas_equal_the_reference(tiny_segment, tiny_config, tmp_path):
     _assert_same(trainer, ref)
     # The BatchNorm statistics really differ per replica (else the mean rule above would not be tested).
     assert not np.allclose(batch["points_xyz_t0"][0], batch["points_xyz_t0"][1])
+
+
+@pytest.mark.parametrize("loss", ["l2", "deflow", "deltaflow"])
+def test_each_loss_over_two_replicas_is_the_loss_of_their_batch(loss):
+    """Each replica's loss (its samples' losses over the global batch), summed over two replicas, is the loss of the
+    whole batch on one device: every term is per sample (DeltaFlow's instances are numbered within a sample)."""
+    from ff3d_tf.model.losses import batch_flow_loss
+    rng = np.random.default_rng(3)
+    n = 64
+    flow_true = rng.choice([0.0, 0.7, 6.0], (GLOBAL_BATCH, n, 1)) * rng.normal(size=(GLOBAL_BATCH, n, 3))
+    batch = {"flow_mps_t0": flow_true.astype(np.float32),
+             "flow_mps_pred": (flow_true + rng.normal(size=flow_true.shape)).astype(np.float32),
+             "class_id_t0": rng.integers(-1, 5, (GLOBAL_BATCH, n)).astype(np.int32),
+             "point_mask_t0": np.arange(n)[None, :] < np.array([[n], [n - 9]]),
+             "instance_id_t0": rng.integers(-1, 6, (GLOBAL_BATCH, n)).astype(np.int32)}
+
+    def replica_loss(b):
+        outputs = {"flow_mps": b["flow_mps_pred"], "point_valid": tf.ones_like(b["point_mask_t0"])}
+        return batch_flow_loss(b, outputs, 0.1, GLOBAL_BATCH, loss=loss)
+
+    strategy = _two_replicas()
+    per_replica = strategy.run(tf.function(replica_loss), args=(next(_distributed(strategy, batch)),))
+    two = float(strategy.reduce(tf.distribute.ReduceOp.SUM, per_replica, axis=None))
+    one = float(replica_loss({k: tf.constant(v) for k, v in batch.items()}))
+    assert one > 0
+    np.testing.assert_allclose(two, one, rtol=1e-6)
+
+
+def test_two_replicas_equal_the_reference_with_deltaflow(tiny_segment, tiny_config, tmp_path):
+    """A training step with DeltaFlow's loss (DeFlow's buckets, its class and instance terms) under two replicas
+    equals one model stepping on the same samples."""
+    cfg = replace_config(replica_config(tiny_config), {"train.loss": "deltaflow"})
+    batch = batches(tiny_segment, cfg, 1)[0]
+    # Hand-made instances (WOD segments carry none): per class, the fast and the slow object points.
+    speed_mps = np.linalg.norm(batch["flow_mps_t0"], axis=-1)
+    batch["instance_id_t0"] = np.where(batch["class_id_t0"] > 0, 2 * batch["class_id_t0"] + (speed_mps > 1.0),
+                                       -1).astype(np.int32)
+    moving = [np.mean(speed_mps[i][batch["instance_id_t0"][i] == k]) > 0.4
+              for i in range(GLOBAL_BATCH) for k in np.unique(batch["instance_id_t0"][i]) if k >= 0]
+    assert any(moving)  # the instance term is not empty
+    trainer = Trainer(cfg, str(tmp_path / "m"), [tiny_segment], strategy=_two_replicas(), log_fn=lambda s: None)
+    ref = Reference(cfg, trainer.model.get_weights())
+    loss = float(trainer.step(_distributed(trainer.strategy, batch)))
+    np.testing.assert_allclose(loss, ref.step(batch), rtol=1e-5)
+    _assert_same(trainer, ref)
 
 
 def test_three_steps_with_resume_equal_the_reference(tiny_segment, tiny_config, tmp_path):

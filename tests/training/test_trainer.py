@@ -111,3 +111,27 @@ def test_max_training_segments_caps_the_training_input(tiny_segment, tiny_config
     assert batch["points_xyz_t0"].shape[0] == 2
     with pytest.raises(tf.errors.NotFoundError):
         next(iter(training_dataset([tiny_segment, missing], tiny_config, 2)))
+
+
+def test_deltaflow_reads_its_records_extras_and_says_once_when_instances_are_missing(av2_sample_records, tiny_segment,
+                                                                                      tiny_config, tmp_path):
+    from ff3d_tf.data import pairs
+    from ff3d_tf.training import input as training_input
+    records = pairs.list_segment_files(av2_sample_records)
+    cfg = replace_config(tiny_config, {"train.loss": "deltaflow", "data.source": "pair_records"})
+    assert training_input.loss_extras(records, cfg) == ("category_t0", "instance_id_t0")
+    assert training_input.loss_notice(records, cfg) is None
+    assert training_input.loss_extras(records, replace_config(cfg, {"train.loss": "deflow"})) == ()
+    batch = {k: v.numpy()[0] for k, v in next(iter(training_input.training_dataset(records, cfg, 1))).items()}
+    ids, real = batch["instance_id_t0"], batch["point_mask_t0"]
+    # numbered densely within the pair (0, 1, ... in order of first appearance), -1 outside cuboids and for padding
+    assert sorted(set(ids[ids >= 0].tolist())) == list(range(ids.max() + 1))
+    _, first = np.unique(ids[ids >= 0], return_index=True)
+    assert (np.diff(first) > 0).all()
+    np.testing.assert_array_equal(ids[real] >= 0, batch["category_t0"][real] > 0)
+    assert (ids[~real] == -1).all()
+    # WOD segments carry no instance ids: the trainer says so, once
+    wod_cfg = _cfg(replace_config(tiny_config, {"train.loss": "deltaflow"}))
+    logged = []
+    Trainer(wod_cfg, str(tmp_path / "m"), [tiny_segment], log_fn=logged.append)
+    assert [line for line in logged if "instance term" in line] == [training_input.loss_notice([tiny_segment], wod_cfg)]

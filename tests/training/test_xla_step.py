@@ -132,3 +132,25 @@ def test_step_runner_imports_no_tensorflow():
               f"sys.path.insert(0, {ROOT!r})\nimport ff3d_tf.training.xla_step_runner, ff3d_tf.xla_export_dir\n")
     run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
+
+
+@pytest.mark.slow  # two exports and their JAX compiles: ~100 s on 2 busy cores
+def test_gru_head_forward_and_training_step_without_tensorflow(tiny_config, tmp_path):
+    """The model with DeFlow's GRU head (`model.head=gru`; its own gradient under the chunk loop) exported as the
+    forward and the training step, run by tools/run_xla.py without TensorFlow: both within TensorFlow's reference."""
+    from ff3d_tf.config import replace_config
+    cfg = replace_config(tiny_config, {"model.head": "gru"})
+    model = tiny_model_off_initial_values(cfg)
+    out_dir = str(tmp_path / "export")
+    export_forward(cfg, model, POINTS, out_dir, log=lambda _: None, reference=True)
+    manifest = export_train_steps(cfg, model, out_dir, TRAIN_POINTS, (TRAIN_BATCH,), log=lambda _: None,
+                                  reference=True)
+    assert any("gru/update_gate" in w["path"] for w in manifest["weights"])
+    out_json = tmp_path / "latency.json"
+    run_without_tf(os.path.join(ROOT, "tools", "run_xla.py"), out_dir, "--runs", "1", "--warmup", "0",
+                   "--precisions", "float32", "--out", str(out_json))
+    result = json.loads(out_json.read_text())
+    (forward,) = result["latency"]
+    assert forward["reference"]["max_abs_flow_diff_mps"] < 1e-4 and forward["reference"]["valid_mismatches"] == 0
+    (train,) = result["train_step"]
+    assert train["reference"]["loss_rel_diff"] < 1e-4 and train["reference"]["grad_norm_rel_diff"] < 1e-3

@@ -23,6 +23,9 @@ PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": 
 PLY_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 MAX_HEADER_BYTES = 1 << 16  # a PCD or PLY header longer than this is not one
 IDENTITY_VIEWPOINT = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)  # PCD VIEWPOINT tx ty tz qw qx qy qz
+# LZF's densest code is a back reference of 264 bytes in 3 input bytes: a stream never decodes to more than 88 times
+# its length, so a binary_compressed header claiming more lies, and its claim is never allocated.
+LZF_MAX_RATIO = 88
 
 
 # --- headers and ASCII tables (PCD and PLY) -----------------------------------------------------------------------
@@ -178,16 +181,19 @@ def _pcd_data(path: str, raw: bytes, fields: list[str], kinds: list[str], counts
             cols[name] = cols[name].astype(kind) if np.all(np.isfinite(cols[name])) and kind[0] != "f" else \
                 cols[name]
         return cols
+    row_bytes = sum(int(kind[1]) * c for kind, c in zip(kinds, counts))
+    if data_kind == "binary":  # the header's sizes against the file's before any array is made
+        _check_length(path, len(raw), n, row_bytes, "binary PCD")
+    else:
+        raw = _pcd_decompressed(path, raw, n * row_bytes)
     dtype = np.dtype([(name, "<" + kind, (c,)) for name, kind, c in zip(names, kinds, counts)])
     if data_kind == "binary_compressed":
-        raw = _pcd_decompressed(path, raw, n * dtype.itemsize)
         cols, start = {}, 0
         for name, kind, c in zip(names, kinds, counts):  # field by field: all x, then all y, ...
             block = n * c * int(kind[1])
             cols[name] = np.frombuffer(raw, "<" + kind, count=n * c, offset=start).reshape(n, c)
             start += block
         return cols
-    _check_length(path, len(raw), n, dtype.itemsize, "binary PCD")
     rows = np.frombuffer(raw, dtype, count=n)
     return {name: rows[name].reshape(n, c) for name, c in zip(names, counts)}
 
@@ -199,6 +205,9 @@ def _pcd_decompressed(path: str, raw: bytes, expected: int) -> bytes:
     if uncompressed != expected:
         raise PointFileError(path, "data", f"binary_compressed: uncompressed size {uncompressed} bytes, but the "
                                            f"header's points and fields make {expected}")
+    if uncompressed > LZF_MAX_RATIO * compressed:
+        raise PointFileError(path, "data", f"binary_compressed: {uncompressed} bytes claimed from {compressed} "
+                                           f"compressed; LZF expands at most {LZF_MAX_RATIO}:1 (a lying header)")
     if len(raw) - 8 < compressed:
         raise PointFileError(path, "data", f"truncated: binary_compressed data of {compressed} bytes, the file has "
                                            f"{len(raw) - 8} after the sizes")

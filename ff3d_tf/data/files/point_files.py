@@ -209,20 +209,88 @@ def _array_columns(path: str, a: np.ndarray, what: str) -> dict[str, np.ndarray]
     return dict(zip(BIN_FIELDS, a.T))
 
 
-def _read_npy(path: str):
+# Deflate expands at most ~1032:1 (RFC 1951: a 258-byte match per ~2 bits at best); a zip member claiming more is a
+# lie, and its claim is never allocated.
+_DEFLATE_MAX_RATIO = 1032
+_NPY_MAX_HEADER_BYTES = 10000  # NumPy's own bound on an .npy header
+
+
+def _npy_header(path: str, stream, where: str) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """(shape, fortran order, dtype) of an .npy header read from `stream`, which is left at the first data byte."""
+    from numpy.lib import format as npy_format
     try:
-        a = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as err:
-        raise PointFileError(path, "file", f"not a readable .npy array without pickled objects ({err})") from None
-    return _array_columns(path, a, "array"), ()
+        version = npy_format.read_magic(stream)
+        if version == (1, 0):
+            shape, fortran, dtype = npy_format.read_array_header_1_0(stream, _NPY_MAX_HEADER_BYTES)
+        elif version == (2, 0):
+            shape, fortran, dtype = npy_format.read_array_header_2_0(stream, _NPY_MAX_HEADER_BYTES)
+        else:
+            raise ValueError(f"format version {version[0]}.{version[1]}: versions 1.0 and 2.0 are read (save with "
+                             "ASCII field names)")
+    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as err:
+        raise PointFileError(path, where, f"not a readable .npy array ({err})") from None
+    if dtype.hasobject:
+        raise PointFileError(path, where, f"type {dtype}: holds Python objects (pickled); point files hold numbers")
+    return tuple(int(d) for d in shape), bool(fortran), dtype
+
+
+def _npy_array(path: str, stream, total_bytes: int, where: str) -> np.ndarray:
+    """The array of an .npy stream (a file or a zip member, at its start) of `total_bytes` bytes: the header's shape
+    and type are checked against the bytes that follow it before anything is allocated (a header that lies about its
+    size is an error, never an allocation)."""
+    shape, fortran, dtype = _npy_header(path, stream, where)
+    have = total_bytes - stream.tell()
+    count = 1
+    for d in shape:
+        count *= d
+    need = count * dtype.itemsize
+    if need != have:
+        why = "truncated" if need > have else "bytes after the data: the header does not match it"
+        raise PointFileError(path, where, f"the header says shape {shape} of {dtype} ({need} bytes of data), the "
+                                          f"data has {have} bytes ({why})")
+    data = stream.read(need)
+    if len(data) != need:
+        raise PointFileError(path, where, f"truncated: {len(data)} of {need} bytes of data could be read")
+    a = np.frombuffer(data, dtype)
+    return a.reshape(shape[::-1]).T if fortran else a.reshape(shape)
+
+
+def load_npy(path: str, where: str = "file") -> np.ndarray:
+    """An .npy file's array (no pickled objects), its header checked against the file's size before reading."""
+    with open(path, "rb") as f:
+        return _npy_array(path, f, os.fstat(f.fileno()).st_size, where)
+
+
+def load_npz(path: str) -> dict[str, np.ndarray]:
+    """The arrays of an .npz archive by name, each member's size checked against what its compressed bytes can hold
+    and its header against its size, before anything is allocated."""
+    import zipfile
+    import zlib
+    arrays = {}
+    try:
+        with zipfile.ZipFile(path) as z:
+            for info in z.infolist():
+                if not info.filename.endswith(".npy"):
+                    raise PointFileError(path, info.filename, "not an .npy member: an .npz holds arrays only")
+                key = info.filename[:-4]
+                stored = info.compress_type == zipfile.ZIP_STORED
+                if (stored and info.file_size != info.compress_size) or \
+                        info.file_size > _DEFLATE_MAX_RATIO * info.compress_size + 1024:
+                    raise PointFileError(path, key, f"the archive says {info.file_size} bytes from "
+                                                    f"{info.compress_size} compressed: more than its compression holds")
+                with z.open(info) as member:
+                    arrays[key] = _npy_array(path, member, info.file_size, key)
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, NotImplementedError, RuntimeError) as err:
+        raise PointFileError(path, "file", f"not a readable .npz archive ({type(err).__name__}: {err})") from None
+    return arrays
+
+
+def _read_npy(path: str):
+    return _array_columns(path, load_npy(path), "array"), ()
 
 
 def _read_npz(path: str):
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (ValueError, OSError, EOFError) as err:
-        raise PointFileError(path, "file", f"not a readable .npz archive without pickled objects ({err})") from None
+    arrays = load_npz(path)
     for key in arrays:
         if key not in NPZ_KEYS:
             raise PointFileError(path, key, "unknown array; an .npz point file holds 'points' ([N,3] or [N,4]) or "
@@ -292,11 +360,9 @@ def read_pose(path: str) -> np.ndarray:
     if not os.path.isfile(path):
         raise PointFileError(path, "pose", "missing (not a file)")
     if path.lower().endswith(".npy"):
-        try:
-            a = np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as err:
-            raise PointFileError(path, "pose", f"not a readable .npy array ({err})") from None
-        if a.shape not in ((4, 4), (3, 4)) or not np.issubdtype(a.dtype, np.number):
+        a = load_npy(path, "pose")
+        if a.shape not in ((4, 4), (3, 4)) or a.dtype.names or not (np.issubdtype(a.dtype, np.integer) or
+                                                                     np.issubdtype(a.dtype, np.floating)):
             raise PointFileError(path, "pose", f"array of shape {a.shape} and type {a.dtype}: expected a [4,4] or "
                                                "[3,4] numeric matrix")
         return _pose_of_numbers(path, "pose", a)

@@ -2,7 +2,9 @@
 
 One output file per segment (`<segment>.pairs.tfrecord`), written atomically, skipped when it exists (resumable); the
 pairs are those of `ff3d_tf.data.pairs.pair_dataset` under `pairs.raw_pair_config` (every point, no study), so that
-reading them with any config gives the examples the decoding path gives with that config.
+reading them with any config gives the examples the decoding path gives with that config. Extras that the decoded
+frames do not hold (each point's labelled box, `instance_id_t0`) come from a caller's `add_extras`
+(`ff3d_tf.labels.pipeline.run_wod_records_job`: the box labels are the labelling pipeline's business).
 """
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import functools
 import logging
 import os
 import time
+from typing import Callable
 
 import tensorflow as tf
 
@@ -20,16 +23,25 @@ _LOG = logging.getLogger(__name__)
 
 
 def wod_manifest(cfg: ExperimentConfig, precision: str = "exact", compression: str = "none",
-                 written_by: str = "", human_labels: bool = True) -> pair_records.Manifest:
-    """`human_labels=False`: segments without scene-flow labels (raw LiDAR, e.g. for pseudo-labelling)."""
+                 written_by: str = "", human_labels: bool = True, extras: tuple[str, ...] = ()
+                 ) -> pair_records.Manifest:
+    """`human_labels=False`: segments without scene-flow labels (raw LiDAR, e.g. for pseudo-labelling); `extras`:
+    the optional point keys every record will hold (given by `write_segment`'s `add_extras`)."""
     d = cfg.data
     return pair_records.Manifest(source="wod", laser_names=tuple(d.laser_names), returns=tuple(d.returns),
                                  max_frame_gap_s=d.max_frame_gap_s, precision=precision, compression=compression,
-                                 human_labels=human_labels, written_by=written_by).validate("<manifest>")
+                                 extras=tuple(extras), human_labels=human_labels,
+                                 written_by=written_by).validate("<manifest>")
 
 
-def write_segment(in_path: str, out_dir: str, cfg: ExperimentConfig, manifest: pair_records.Manifest) -> dict:
-    """Writes the pair records of one segment; returns counts (pairs, points, bytes, seconds; already_done)."""
+# add_extras(segment path) -> fn(pair example, NumPy) -> {extra key: [N0 or N1, ...] array}
+AddExtras = Callable[[str], Callable[[dict], dict]]
+
+
+def write_segment(in_path: str, out_dir: str, cfg: ExperimentConfig, manifest: pair_records.Manifest,
+                  add_extras: AddExtras | None = None) -> dict:
+    """Writes the pair records of one segment; returns counts (pairs, points, bytes, seconds; already_done).
+    `add_extras(in_path)` gives each pair its `manifest.extras` (needed when the manifest lists any)."""
     out_path = os.path.join(out_dir, pair_records.records_file_name(in_path))
     if tf.io.gfile.exists(out_path):
         _LOG.info("exists, skipped: %s", out_path)
@@ -37,16 +49,21 @@ def write_segment(in_path: str, out_dir: str, cfg: ExperimentConfig, manifest: p
     t0 = time.time()
     counts = {"pairs": 0, "points_t0": 0, "points_tm1": 0}
     raw_cfg = pairs.raw_pair_config(cfg)
+    if manifest.extras and add_extras is None:
+        raise ValueError(f"the manifest lists extras {manifest.extras}: write_segment needs add_extras to give them")
+    extras_of = add_extras(in_path) if manifest.extras else None
 
     def records():
         unlabelled = not manifest.human_labels
         with pairs.input_errors_named([in_path], pairs.decode_options(raw_cfg, unlabelled)):
             for ex in pairs.pair_dataset([in_path], raw_cfg, metadata=True, inference_only=unlabelled):
                 ex = {k: v.numpy() for k, v in ex.items()}
+                if extras_of is not None:
+                    ex.update(extras_of(ex))
                 counts["pairs"] += 1
                 counts["points_t0"] += int(ex["num_points_t0"])
                 counts["points_tm1"] += int(ex["num_points_tm1"])
-                yield pair_records.serialize_pair(ex, manifest.precision)
+                yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras)
 
     pair_records.write_records_atomically(out_path, records(), manifest.compression)
     counts["bytes"] = tf.io.gfile.stat(out_path).length
@@ -58,10 +75,11 @@ def write_segment(in_path: str, out_dir: str, cfg: ExperimentConfig, manifest: p
 
 def run_wod_job(files: list[str], out_dir: str, cfg: ExperimentConfig, precision: str = "exact",
                 compression: str = "none", beam_args: list[str] | None = None, written_by: str = "",
-                human_labels: bool = True) -> dict:
-    """Pair records of every segment in `files` into `out_dir` (a Beam job, `ff3d_tf.data.beam_job`)."""
-    manifest = wod_manifest(cfg, precision, compression, written_by, human_labels)
+                human_labels: bool = True, extras: tuple[str, ...] = (), add_extras: AddExtras | None = None) -> dict:
+    """Pair records of every segment in `files` into `out_dir` (a Beam job, `ff3d_tf.data.beam_job`), with the
+    `extras` that `add_extras` gives (see `write_segment`; a picklable function for multi-process runners)."""
+    manifest = wod_manifest(cfg, precision, compression, written_by, human_labels, extras)
     pair_records.write_manifest(out_dir, manifest)  # before any work: a directory of other records fails here
     return beam_job.run_per_input(list(files), functools.partial(write_segment, out_dir=out_dir, cfg=cfg,
-                                                                 manifest=manifest),
+                                                                 manifest=manifest, add_extras=add_extras),
                                   out_dir, "write_pair_records", beam_args)

@@ -1,0 +1,59 @@
+"""Training augmentation of model input pairs (`data.augment_*`; off in the paper config): a random height offset of
+both clouds and random mirror flips of x and/or y, with the flow flipped alike.
+
+DeltaFlow's training augmentation (Zhang et al., arXiv 2508.17054; KTH-RPL/OpenSceneFlow src/dataset.py RandomHeight
+and RandomFlip, composed in train.py with `train_aug`; facts read, no code copied): with probability p_height every
+cloud moves by one z offset drawn uniformly from a range; with probability p_flip each of x and y is mirrored
+(independently), the clouds and the flow alike. (Their third transform, a per-point jitter, has no counterpart here.)
+
+Both transforms keep the label true: a flip is linear, so the flow of a point, (p_t0 - p_tm1) / dt, flips with the
+points; a common z offset cancels in p_t0 - p_tm1, so the flow is unchanged. The poses (`pose_t0`, `pose_tm1`) keep
+describing the clouds as recorded: the model and the loss never read them.
+
+Applied to examples after the decode-once pair records are read (and after the studies and the crop, so a point an
+offset moves out of the grid's z range is simply not valid for the model), in the training input only
+(`ff3d_tf.training.input`): records stay reusable and evaluation always sees the recorded clouds. Each draw is a
+function of a seed (`tf.random.stateless_uniform`): the same seed gives the same augmentation.
+"""
+from __future__ import annotations
+
+import tensorflow as tf
+
+from ff3d_tf import schema
+
+# Per-point keys holding positions (flipped and offset) and flows (flipped only), all [N,3] in the vehicle frame at t0.
+POSITION_KEYS = ("points_xyz_t0", "points_xyz_tm1_in_t0")
+FLOW_KEYS = ("flow_mps_t0", schema.PSEUDO_FLOW_KEY)
+
+
+def is_enabled(data_cfg) -> bool:
+    """Whether `data_cfg` (a `DataConfig`) asks for any augmentation."""
+    return data_cfg.augment_height_offset_prob > 0 or data_cfg.augment_flip_prob > 0
+
+
+def draw(data_cfg, seed) -> tuple:
+    """(flip_x, flip_y, height_offset_m) drawn from `seed` (int [2], `tf.random.stateless_uniform`) by `data_cfg`'s
+    probabilities and offset range: bool, bool, float32 (0 when the offset is not drawn)."""
+    u = tf.random.stateless_uniform([4], seed)
+    lo, hi = data_cfg.augment_height_offset_m
+    offset_m = tf.where(u[0] < data_cfg.augment_height_offset_prob, lo + (hi - lo) * u[1], 0.0)
+    return u[2] < data_cfg.augment_flip_prob, u[3] < data_cfg.augment_flip_prob, offset_m
+
+
+def apply(example: dict, flip_x, flip_y, height_offset_m) -> dict:
+    """`example` with x (and/or y) negated in its positions and flows and `height_offset_m` added to the z of its
+    positions; every other key unchanged. flip_x, flip_y: bool scalars; height_offset_m: float32 scalar (m)."""
+    scale = tf.stack([tf.where(flip_x, -1.0, 1.0), tf.where(flip_y, -1.0, 1.0), 1.0])
+    shift = tf.stack([0.0, 0.0, tf.cast(height_offset_m, tf.float32)])
+    out = dict(example)
+    for key in POSITION_KEYS:
+        out[key] = example[key] * scale + shift
+    for key in FLOW_KEYS:
+        if key in example:
+            out[key] = example[key] * scale
+    return out
+
+
+def augment_example(example: dict, data_cfg, seed) -> dict:
+    """`apply` with the transforms `draw` gives for `seed`: one training example's augmentation."""
+    return apply(example, *draw(data_cfg, seed))

@@ -1,0 +1,384 @@
+"""Where the training step's time and memory go on a CPU, per compile mode and per process setting, before and after
+the CPU changes of `ff3d_tf.model.compile` and `ff3d_tf.cpu` (tools/benchmark_cpu_step.py).
+
+Every reading comes from a fresh child process (`ff3d_tf.children.run_child`, pinned cores), one *variant* each:
+
+  settings  "before": the process as TensorFlow starts it by itself on the emulated CPU (`ff3d_tf.cpu.EMULATIONS`
+            [cap]: on an AVX2-only CPU, oneDNN off), the point encoding of compile mode hybrid in one XLA program
+            (`compile_lib.hybrid_point_programs = "one"`), `model.compile=auto` by the rule of before the per-job choice
+            (hybrid on every CPU);
+            "after": the start-up environment the tools choose for the job (`ff3d_tf.cpu.startup_environment`, under
+            the same ISA caps), the clouds' point programs apart ("per_cloud"), `auto` by
+            `compile_lib.resolve_compile_mode` for the job.
+  job       "train" (the Trainer's own step: forward, loss, backward, Adam; batch 1, the process's peak resident
+            memory) or "forward" (the compiled forward at each point count, in one process, round robin).
+  mode      `model.compile`: auto, hybrid, xla, none.
+
+A training child also times the step's parts alone (`stage_times`, same process, after the steps): the point stages
+(rows A-B and W-Z) forward and forward + backward, the convolutions (rows C-V) forward and forward + backward, the
+BatchNorm kernels inside the latter (profiler, TensorFlow kernels only), Adam's update, the loss; what the parts leave
+of the whole step is the rest (copies between TensorFlow kernels and XLA programs, program launches, the tape).
+
+No PyTorch here: the PyTorch FastFlow3D figures of the comparison are the issue's, measured on the real CPUs
+(`PEER`); `projection` scales them by this run's ratios.
+"""
+from __future__ import annotations
+
+import json
+import os
+from typing import Callable, Mapping, Sequence
+
+from ff3d_tf import bench, children, cpu
+
+MODULE = __name__
+SETTINGS = ("before", "after")
+JOBS = ("train", "forward")
+MODES = ("auto", "hybrid", "xla", "none")
+# The PyTorch FastFlow3D peer (torch CPU, its own forward, loss and Adam; paper config, 2 threads, batch 1, median of
+# 3 after 2 warm-ups) and ff3d_tf before this change, both as the issue measured them on a 2-core AMD EPYC Zen 3 (AVX2,
+# no AVX-512): the anchor of `projection`, which cannot be measured here (no torch).
+PEER = {"cpu": "AMD EPYC Zen 3 (AVX2, no AVX-512, no bfloat16), 2 cores",
+        "peer": {"train_step_32000_ms": 10308.0, "train_step_32000_peak_gb": 2.26, "forward_32000_ms": 4156.0,
+                 "forward_1000000_ms": 7489.0},
+        "ff3d_tf_before": {"train_step_32000_ms": 14700.0, "train_step_32000_peak_gb": 4.08,
+                           "forward_32000_ms": 3018.0, "forward_1000000_ms": 3373.0}}
+TARGETS = {"train_step_speedup_over_peer": 1.3, "train_step_peak_gb": 2.5, "forward_32000_speedup_over_peer": 1.5,
+           "forward_1000000_speedup_over_peer": 2.5, "forward_1m_over_32k": 1.15}
+
+
+# -- the environment of a variant --------------------------------------------------------------------------------------
+def variant_environment(setting: str, job: str, cap: str, base: Mapping | None = None) -> dict:
+    """The environment of a child: `base` (default os.environ) without the keys the emulations and the start-up rule
+    set, plus the caps of `cpu.EMULATIONS[cap]` and then, for "after", what `cpu.startup_environment` chooses for
+    `job` on this CPU under those caps (float32: the studies measure the default precision)."""
+    base = dict(os.environ if base is None else base)
+    knobs = {k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS)
+    env = {k: v for k, v in base.items() if k not in knobs}
+    caps = dict(cpu.EMULATIONS[cap])
+    if setting == "after":
+        caps.pop("TF_ENABLE_ONEDNN_OPTS", None)
+        caps.update(cpu.startup_environment(job, "float32", environ=caps))
+    return {**env, **caps}
+
+
+def resolved_mode(setting: str, mode: str, job: str) -> str:
+    """The compile mode a variant runs: "auto" by the rule of `setting` (before: hybrid on a CPU)."""
+    from ff3d_tf.model import compile as compile_lib
+    if mode == "auto" and setting == "before":
+        return "hybrid"
+    return compile_lib.resolve_compile_mode(mode, "CPU", job=job)
+
+
+# -- in the child ------------------------------------------------------------------------------------------------------
+def _setup(config: str, overrides: Sequence[str], point_programs: str):
+    from ff3d_tf.config import load_config
+    from ff3d_tf.model import compile as compile_lib
+    compile_lib.hybrid_point_programs = point_programs
+    return load_config(config or None, list(overrides))
+
+
+def _header(mode: str) -> dict:
+    from ff3d_tf import internals
+    return {"cpu": cpu.describe(), "onednn_enabled": internals.onednn_enabled(), "mode": mode,
+            "placement": children.placement()}
+
+
+def train_child(config: str, overrides: list, mode: str, points: int, steps: int, warmup: int,
+                point_programs: str, stages: bool, stage_runs: int) -> dict:
+    """(In a child.) The Trainer's step in compile `mode` (resolved) on one labelled benchmark example: "step_ms" and
+    "step_cpu_ms" of each of `steps` steps after `warmup`, "peak_rss_gb" (the process's peak resident memory from its
+    start to the last step: libraries, compilation, every step), and with `stages` the step's parts (`stage_times`)."""
+    import numpy as np
+    from ff3d_tf.training import bench_steps
+    cfg = _setup(config, overrides, point_programs)
+    labelled, padded = bench_steps.example(cfg, np.random.default_rng(0), points, labels=True)
+    step = bench.fetched(bench_steps.train_steps(cfg, {mode: mode}, labelled)[mode])
+    readings = bench.measure(step, steps, warmup, reading=bench.timed_with_usage)
+    out = {**_header(mode), "points": points, "padded_points": padded, "point_programs": point_programs,
+           "step_ms": [r["ms"] for r in readings], "step_cpu_ms": [r["cpu_ms"] for r in readings],
+           "peak_rss_gb": bench.proc_status("VmHWM"), "rss_after_gb": bench.proc_status("VmRSS")}
+    out["step_median_ms"] = bench.middle(out["step_ms"])
+    if stages:  # after the steps: the peak above is the step's alone
+        try:
+            out["stages"] = stage_times(cfg, mode, labelled, stage_runs)
+        except Exception as e:  # noqa: BLE001 -- the step's figures stand without the parts
+            out["stages_error"] = f"{type(e).__name__}: {e}"
+    return out
+
+
+def forward_child(config: str, overrides: list, mode: str, points: list, runs: int, warmup: int,
+                  point_programs: str) -> dict:
+    """(In a child.) The compiled forward (`compiled_forward`, batch 1) in compile `mode` at each of `points`, round
+    robin: {"forward_ms": {points: each call's ms}, "median_ms": {points: median}, "peak_rss_gb"}."""
+    import numpy as np
+    from ff3d_tf.config import replace_config
+    from ff3d_tf.model import build_model
+    from ff3d_tf.model.forward import compiled_forward
+    from ff3d_tf.training import bench_steps
+    cfg = _setup(config, overrides, point_programs)
+    model = build_model(replace_config(cfg, {"train.global_batch_size": 1}), mode)
+    forward = compiled_forward(model, mode == "xla")
+    rng = np.random.default_rng(0)
+    inputs = {n: bench_steps.example(cfg, rng, n)[0] for n in points}
+    calls = {str(n): bench.fetched(lambda x=x: forward(x)) for n, x in inputs.items()}
+    readings = bench.round_robin(calls, runs, warmup)
+    out = {**_header(mode), "point_programs": point_programs,
+           "forward_ms": {n: [r["ms"] for r in rs] for n, rs in readings.items()}}
+    out["median_ms"] = {n: bench.middle(v) for n, v in out["forward_ms"].items()}
+    out["peak_rss_gb"] = bench.proc_status("VmHWM")
+    return out
+
+
+BN_OP_TYPES = ("FusedBatchNorm", "BatchNorm")  # substrings of the op types counted as BatchNorm
+
+
+def stage_times(cfg, mode: str, labelled: dict, runs: int) -> dict:
+    """The parts of a training step in compile `mode`, each alone, round robin (median ms, and the peak resident
+    memory a call adds above what the process held before it, GB):
+
+      point_forward          rows A-B (pillars, point encoder, scatter; BN statistics of training) and W-Z (head)
+      point_forward_backward the same and their gradients (upstream: ones)
+      conv_forward           rows C-V with training=True (BatchNorm on batch statistics)
+      conv_forward_backward  the same and their gradients
+      optimizer              the step's update: global norm, clipping, Adam (`step.adam_update`) on the model's weights
+      loss                   the loss and its gradient with respect to the flow
+
+    compiled as the step compiles them: mode xla, one XLA program each; hybrid, the point stages as XLA programs
+    (`compile_lib.hybrid_encode`) and the rest as graph kernels; none, graph kernels. "batchnorm_ms": the BatchNorm
+    kernels' time inside one conv_forward_backward call (TensorFlow profiler; None in mode xla, where they are fused
+    into XLA's program)."""
+    import tensorflow as tf
+    from ff3d_tf.config import replace_config
+    from ff3d_tf.model import build_model
+    from ff3d_tf.model import compile as compile_lib
+    from ff3d_tf.model import step as step_lib
+    from ff3d_tf.model.forward import model_inputs
+    from ff3d_tf.model.losses import batch_flow_loss
+    cfg1 = replace_config(cfg, {"train.global_batch_size": 1})
+    model = build_model(cfg1, mode)
+    inputs = model_inputs(labelled)
+    xla = mode == "xla"
+
+    def encode(x):
+        if mode == "hybrid":
+            return compile_lib.hybrid_encode(model.encode_points, x, True)
+        return model.encode_points(x, True)
+
+    def decode(grid, encoded):
+        if mode == "hybrid":
+            return compile_lib.xla_function(model.decode_points)(grid, encoded)
+        return model.decode_points(grid, encoded)
+
+    encoded0 = tf.function(encode, jit_compile=xla)(inputs)
+    grid0 = tf.function(lambda b: model.dense_stages(b, True), jit_compile=xla)(encoded0["bev_features"])
+    dense_vars = [v for layer in [b for s in model.encoder_stages for b in s] + model.upsample_skips + [model.conv_v]
+                  for v in layer.trainable_variables]
+    dense_ids = {id(v) for v in dense_vars}
+    point_vars = [v for v in model.trainable_variables if id(v) not in dense_ids]  # rows A, Y, Z (or the GRU head)
+
+    def point_fb(x, grid):
+        with tf.GradientTape() as tape:
+            tape.watch(grid)
+            encoded = encode(x)
+            flow = decode(grid, encoded)["flow_mps"]
+            total = tf.reduce_sum(flow) + tf.reduce_sum(tf.cast(encoded["bev_features"], tf.float32))
+        return tape.gradient(total, point_vars + [grid])
+
+    def conv_fb(bev):
+        with tf.GradientTape() as tape:
+            tape.watch(bev)
+            total = tf.reduce_sum(tf.cast(model.dense_stages(bev, True), tf.float32))
+        return tape.gradient(total, dense_vars + [bev])
+
+    state = step_lib.TrainState([v.value for v in model.trainable_variables],
+                                [v.value for v in model.non_trainable_variables],
+                                [tf.zeros_like(v) for v in model.trainable_variables],
+                                [tf.zeros_like(v) for v in model.trainable_variables], tf.constant(0, tf.int64))
+    grads = [tf.ones_like(v) * 1e-3 for v in model.trainable_variables]
+
+    def optimizer(state, grads):
+        norm = tf.linalg.global_norm(grads)
+        if cfg.train.grad_clip_norm is not None:
+            grads, _ = tf.clip_by_global_norm(grads, cfg.train.grad_clip_norm, use_norm=norm)
+        return list(step_lib.adam_update(cfg1, state, grads))
+
+    flow0 = decode(grid0, encoded0)
+
+    def loss_fb(flow):
+        with tf.GradientTape() as tape:
+            tape.watch(flow)
+            loss = batch_flow_loss(labelled, {"flow_mps": flow, "point_valid": flow0["point_valid"]},
+                                   cfg.train.background_weight, 1)
+        return tape.gradient(loss, flow)
+
+    fns = {"point_forward": (tf.function(lambda x, g: decode(g, encode(x)), jit_compile=xla), (inputs, grid0)),
+           "point_forward_backward": (tf.function(point_fb, jit_compile=xla), (inputs, grid0)),
+           "conv_forward": (tf.function(lambda b: model.dense_stages(b, True), jit_compile=xla),
+                            (encoded0["bev_features"],)),
+           "conv_forward_backward": (tf.function(conv_fb, jit_compile=xla), (encoded0["bev_features"],)),
+           "optimizer": (tf.function(optimizer), (state, grads)),
+           "loss": (tf.function(loss_fb, jit_compile=xla), (flow0["flow_mps"],))}
+    calls = {k: bench.fetched(lambda f=f, a=a: f(*a)) for k, (f, a) in fns.items()}
+    readings = bench.round_robin(calls, runs, warmup=1, reading=bench.timed_with_memory)
+    out = {k: {"median_ms": bench.middle([r["ms"] for r in rs]),
+               "peak_above_before_gb": bench.middle([r["peak_rss_gb"] - r["rss_before_gb"] for r in rs])}
+           for k, rs in readings.items()}
+    out["batchnorm_ms"] = None if xla else _op_type_ms(calls["conv_forward_backward"], BN_OP_TYPES)
+    return out
+
+
+def _op_type_ms(call: Callable, substrings: Sequence[str]) -> float:
+    """ms of the TensorFlow kernels whose op type contains one of `substrings`, in one profiled `call`."""
+    import glob
+    import tempfile
+    import tensorflow as tf
+    from ff3d_tf import internals
+    with tempfile.TemporaryDirectory() as logdir:
+        tf.profiler.experimental.start(logdir)
+        call()
+        tf.profiler.experimental.stop()
+        total = 0.0
+        for path in glob.glob(os.path.join(logdir, "**", "*.xplane.pb"), recursive=True):
+            for plane in internals.profiler_xspace(path).planes:
+                names = {k: v.name for k, v in plane.event_metadata.items()}
+                for line in plane.lines:
+                    for event in line.events:
+                        name = names.get(event.metadata_id, "")
+                        if ":" in name and any(s in name.rsplit(":", 1)[1] for s in substrings):
+                            total += event.duration_ps / 1e9
+    return total
+
+
+# -- the parent --------------------------------------------------------------------------------------------------------
+def stage_summary(stages: Mapping, step_ms: float) -> dict:
+    """Backward parts as (forward + backward) - forward, and the rest of the step: step - (point stages forward and
+    backward + convolutions forward and backward + optimizer + loss); ms."""
+    ms = {k: v["median_ms"] for k, v in stages.items() if isinstance(v, dict)}
+    out = {"point_forward_ms": ms["point_forward"],
+           "point_backward_ms": ms["point_forward_backward"] - ms["point_forward"],
+           "conv_forward_ms": ms["conv_forward"],
+           "conv_backward_ms": ms["conv_forward_backward"] - ms["conv_forward"],
+           "batchnorm_ms": stages.get("batchnorm_ms"), "optimizer_ms": ms["optimizer"], "loss_ms": ms["loss"]}
+    out["rest_ms"] = step_ms - (ms["point_forward_backward"] + ms["conv_forward_backward"] + ms["optimizer"] +
+                                ms["loss"])
+    return out
+
+
+def projection(summary: Mapping) -> dict:
+    """The issue's Zen 3 figures of ff3d_tf before, scaled by this run's after/before ratios (AVX2 caps), beside the
+    peer's: what the change is expected to give on that CPU, and the targets met by that expectation."""
+    before, peer = PEER["ff3d_tf_before"], PEER["peer"]
+    out = {}
+    step = summary.get("train/auto")
+    if step:
+        ratio = step["after"]["step_median_ms"] / step["before"]["step_median_ms"]
+        out["train_step_32000_ms"] = before["train_step_32000_ms"] * ratio
+        out["train_step_speedup_over_peer"] = peer["train_step_32000_ms"] / out["train_step_32000_ms"]
+        mem = step["after"]["peak_rss_gb"] / step["before"]["peak_rss_gb"]
+        out["train_step_32000_peak_gb"] = before["train_step_32000_peak_gb"] * mem
+    fwd = summary.get("forward/auto")
+    if fwd:
+        for n in ("32000", "1000000"):
+            if n in fwd["after"]["median_ms"]:
+                ratio = fwd["after"]["median_ms"][n] / fwd["before"]["median_ms"][n]
+                out[f"forward_{n}_ms"] = before[f"forward_{n}_ms"] * ratio
+                out[f"forward_{n}_speedup_over_peer"] = peer[f"forward_{n}_ms"] / out[f"forward_{n}_ms"]
+    return out
+
+
+def study(config: str, overrides: Sequence[str], train_points: int, forward_points: Sequence[int],
+          modes: Sequence[str], jobs: Sequence[str], settings: Sequence[str], cap: str, steps: int, warmup: int,
+          runs: int, stages: bool, stage_runs: int, cores: int, timeout_s: float | None = None,
+          log_fn: Callable[[str], None] = print, save: Callable[[dict], None] = lambda result: None) -> dict:
+    """Every (job, mode, setting) child once, settings of one (job, mode) next to each other; the JSON of
+    tools/benchmark_cpu_step.py (`save` gets it after every child). A failed child is recorded ({"error": ...})."""
+    for name, given, known in (("modes", modes, MODES), ("jobs", jobs, JOBS), ("settings", settings, SETTINGS)):
+        if not set(given) <= set(known):
+            raise ValueError(f"{name}={list(given)}: of {', '.join(known)}")
+    if cap not in cpu.EMULATIONS:
+        raise ValueError(f"cap={cap!r}: one of {', '.join(cpu.EMULATIONS)}")
+    config = os.path.abspath(config) if config else ""
+    result = {"how": "", "cpu": cpu.describe(), "cap": cap, "load_average_at_start": bench.load_average(),
+              "config": config and os.path.relpath(config, children.ROOT), "overrides": list(overrides),
+              "train_points": train_points, "forward_points": list(forward_points), "steps": steps,
+              "warmup": warmup, "runs": runs, "cores": cores, "peer": PEER, "targets": TARGETS, "variants": {},
+              "summary": {}}
+    result["how"] = (f"each variant a fresh process pinned to {cores} cores with TensorFlow's pools of {cores} "
+                     f"threads; training: median of {steps} steps after {warmup} warm-up steps, peak = the "
+                     f"process's VmHWM; forward: median of {runs} calls after {warmup} warm-up calls per point count, "
+                     "round robin in one process; every figure under the caps of ff3d_tf.cpu.EMULATIONS"
+                     f"[{cap!r}] (the CPU named in each variant's cpu.limits)")
+    for job in jobs:
+        for mode in modes:
+            key = f"{job}/{mode}"
+            result["variants"][key] = {}
+            for setting in settings:
+                env = variant_environment(setting, job, cap)
+                resolved = resolved_mode(setting, mode, job)
+                point_programs = "one" if setting == "before" else "per_cloud"
+                kwargs = {"config": config, "overrides": list(overrides), "mode": resolved, "warmup": warmup,
+                          "point_programs": point_programs}
+                if job == "train":
+                    fn = f"{MODULE}:train_child"
+                    kwargs.update(points=train_points, steps=steps, stages=stages, stage_runs=stage_runs)
+                else:
+                    fn = f"{MODULE}:forward_child"
+                    kwargs.update(points=list(forward_points), runs=runs)
+                environment = {k: v for k, v in env.items()}
+                removed = {k: os.environ.pop(k) for k in list(os.environ) if k not in environment}
+                try:
+                    reading = children.run_child(fn, kwargs, cores=cores, env=environment, timeout_s=timeout_s,
+                                                 what=f"{key} {setting}", on_error="record")
+                finally:
+                    os.environ.update(removed)
+                reading.update({"setting": setting, "requested_mode": mode,
+                                "environment": {k: environment.get(k) for k in sorted(
+                                    {k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS))}})
+                if job == "train" and "stages" in reading and "step_median_ms" in reading:
+                    reading["stage_summary"] = stage_summary(reading["stages"], reading["step_median_ms"])
+                result["variants"][key][setting] = reading
+                log_fn(f"{key} {setting}: " + _brief(reading))
+                result["summary"] = summarize(result["variants"])
+                result["projection_zen3"] = projection(result["summary"])
+                result["load_average_at_end"] = bench.load_average()
+                save(result)
+    return result
+
+
+def _brief(reading: Mapping) -> str:
+    if "error" in reading:
+        return "FAILED " + reading["error"].splitlines()[0]
+    if "step_median_ms" in reading:
+        return (f"{reading['mode']}, oneDNN {reading['onednn_enabled']}: step {reading['step_median_ms']:.0f} ms, "
+                f"peak {reading['peak_rss_gb']:.2f} GB")
+    return f"{reading['mode']}, oneDNN {reading['onednn_enabled']}: forward " + json.dumps(
+        {k: round(v) for k, v in reading["median_ms"].items()})
+
+
+def summarize(variants: Mapping) -> dict:
+    """{"<job>/<mode>": {setting: the reading's figures}, and "after_over_before"} of the variants measured."""
+    out = {}
+    for key, by_setting in variants.items():
+        row = {}
+        for setting, r in by_setting.items():
+            if "error" in r:
+                row[setting] = {"error": True}
+            elif "step_median_ms" in r:
+                row[setting] = {"mode": r["mode"], "onednn_enabled": r["onednn_enabled"],
+                                "step_median_ms": r["step_median_ms"], "peak_rss_gb": r["peak_rss_gb"],
+                                **({"stages": r["stage_summary"]} if "stage_summary" in r else {})}
+            else:
+                med = r["median_ms"]
+                row[setting] = {"mode": r["mode"], "onednn_enabled": r["onednn_enabled"], "median_ms": med,
+                                "peak_rss_gb": r["peak_rss_gb"]}
+                if "32000" in med and "1000000" in med:
+                    row[setting]["t1m_over_t32k"] = med["1000000"] / med["32000"]
+        if all(s in row and "error" not in row[s] for s in SETTINGS):
+            b, a = row["before"], row["after"]
+            if "step_median_ms" in b:
+                row["before_over_after"] = {"step": b["step_median_ms"] / a["step_median_ms"],
+                                            "peak": b["peak_rss_gb"] / a["peak_rss_gb"]}
+            else:
+                row["before_over_after"] = {n: b["median_ms"][n] / a["median_ms"][n] for n in a["median_ms"]}
+        out[key] = row
+    return out
