@@ -84,10 +84,11 @@ def xla_function(fn):
     return tf.function(fn, jit_compile=True, autograph=False)
 
 
-# How compile mode hybrid splits the point encoding into XLA programs (`hybrid_encode`): "per_cloud" (the default)
-# or "one" (both clouds in one program, the layout before the split; kept for the studies that compare the two).
+# How compile mode hybrid splits the point encoding into XLA programs (`hybrid_encode`): "one" (both clouds in one
+# program, the default until tools/benchmark_cpu_step.py has measured the other) or "per_cloud" (each cloud's stages
+# as programs of their own, which TensorFlow's executor can run side by side).
 HYBRID_POINT_PROGRAMS = ("per_cloud", "one")
-hybrid_point_programs = "per_cloud"
+hybrid_point_programs = "one"
 
 
 def hybrid_encode(encode_points, inputs, training):
