@@ -32,7 +32,7 @@ MANIFEST_NAME = "pair_records.json"
 FORMAT_NAME, FORMAT_VERSION = "ff3d_tf.pair_records", 1
 PRECISIONS = ("exact", "compact")
 COMPRESSIONS = ("none", "zlib")
-SOURCES = ("wod", "av2")
+SOURCES = ("wod", "av2", "files")  # "files": a user's own sequences (labels/own_records.py)
 # Scalar metadata of a record (not model input): the timestamps of the t0 cloud and of its partner (the t-1 cloud,
 # or with `Manifest.partner` "next" the later one), in ns (WOD: microseconds x 1000), and the id of the sequence it
 # comes from (WOD segment file name, Argoverse 2 log id).

@@ -254,6 +254,7 @@ def test_merge_counts_sums_numbers_and_joins_lists():
         "pairs": 5, "bad_fits": ["a", "b"], "x": 1.5}
 
 
+@pytest.mark.slow  # an NSFP fit on the real sample pair: ~50 s
 def test_real_av2_pair_through_the_tool_beats_zero_flow(av2_sample_records, tmp_path):
     """tools/pseudo_label.py as a user runs it on the Argoverse 2 sample log's records (its defaults: the region,
     ground of both clouds from the map), the fit capped for the suite's time: every 16th point fitted, 150 steps. The

@@ -127,7 +127,8 @@ def _depends_on(op, other, seen=None):
     return False
 
 
-def test_hybrid_launches_the_clouds_as_independent_programs(tiny_config):
+def test_hybrid_launches_the_clouds_as_independent_programs(tiny_config, monkeypatch):
+    monkeypatch.setattr(compile_lib, "hybrid_point_programs", "per_cloud")
     model = build_model(tiny_config, "hybrid")
     rng = np.random.default_rng(0)
     inputs = {"points_xyz_t0": tf.constant(rng.uniform(-20, 20, (1, 64, 3)).astype(np.float32)),

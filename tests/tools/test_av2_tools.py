@@ -90,6 +90,7 @@ def test_v1_submissions_of_the_sample_log(sample_records, sample_masks, tmp_path
                                   labels.column("dynamic").to_numpy(zero_copy_only=False)[mask][close])
 
 
+@pytest.mark.slow  # trains, then evaluates by the protocol: ~45 s
 def test_eval_protocol_av2_with_a_checkpoint(tiny_segment, sample_records, sample_masks, tmp_path):
     masks, _, mask, _ = sample_masks
     model_dir = tmp_path / "model"

@@ -100,6 +100,7 @@ def test_a_saved_model_directory_and_a_remote_model_dir(common, tiny_config, tmp
         _load(common, ["--model_dir", remote], "--model_dir")
 
 
+@pytest.mark.slow  # trains, then evaluates through the tool: ~70 s
 def test_eval_without_config_uses_the_models_own(tiny_segment, tiny_config, tmp_path):
     """The reported failure: eval given a model_dir trained with a non-default config and no --config stopped on
     the paper config's shapes. Now it loads the model's config.yaml; --config of another config is still named."""

@@ -4,6 +4,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from conftest import ROOT
 
 
@@ -44,6 +46,7 @@ def test_bad_config_fails_before_work(tmp_path):
     assert not (tmp_path / "m").exists()
 
 
+@pytest.mark.slow  # two trainings through the study tool: ~110 s
 def test_run_study_ground_removal(tiny_segment, tmp_path):
     from conftest import TINY_OVERRIDES
     data_dir = os.path.dirname(tiny_segment)

@@ -26,6 +26,7 @@ def test_input_rate_of_the_training_pipeline(tiny_segment, tiny_config):
     assert r["mean_points_t0"] > 100  # tiny range images still give thousands of points per frame
 
 
+@pytest.mark.slow  # every stage and record kind: ~45 s; tools/benchmark_input.py runs the same
 def test_every_stage_and_record_kind_read_on_the_cores_asked():
     lines = []
     result = bench_input.input_benchmark(None, TINY_OVERRIDES, {"tiny": TINY_SCALE}, [1], segments=1,

@@ -12,6 +12,7 @@ FIRST_CPU = sorted(os.sched_getaffinity(0))[:1]
 BATCH = 2  # TINY_OVERRIDES' train.global_batch_size
 
 
+@pytest.mark.slow  # decodes and steps a whole segment: ~45 s
 def test_input_decodes_and_steps_of_one_segment(tiny_segment):
     lines = []
     result = bench_steps.training_benchmark(None, TINY_OVERRIDES, data_dir=os.path.dirname(tiny_segment), cores=[1],

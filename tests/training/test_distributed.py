@@ -87,6 +87,7 @@ def test_two_replicas_equal_the_reference_with_deltaflow(tiny_segment, tiny_conf
     _assert_same(trainer, ref)
 
 
+@pytest.mark.slow  # three compiled steps and a resume: ~65 s; tests/training/test_kill_resume.py resumes in the fast suite
 def test_three_steps_with_resume_equal_the_reference(tiny_segment, tiny_config, tmp_path):
     cfg = replica_config(tiny_config)
     three = batches(tiny_segment, cfg, 3)

@@ -27,7 +27,10 @@ def _gru(cfg):
 
 
 def _two_replicas():
-    return tf.distribute.MirroredStrategy(["/cpu:0", "/cpu:1"])
+    # Reduction through one device, not TensorFlow's collectives: a process keeps each collective instance's shape
+    # from its first use, and the paper model's trainers of other test files in the same process (pytest-xdist) use
+    # the same instance keys with other gradient shapes. tests/training/test_distributed.py tests the collectives.
+    return tf.distribute.MirroredStrategy(["/cpu:0", "/cpu:1"], cross_device_ops=tf.distribute.ReductionToOneDevice())
 
 
 def _distributed(strategy, batch):
@@ -99,6 +102,7 @@ def test_two_workers_equal_each_other_and_the_reference(tiny_segment, tiny_confi
     _assert_same_variables(trained, ref.model)
 
 
+@pytest.mark.slow  # a GRU SavedModel export and two evaluations: ~50 s; the paper head's in tests/training/test_evaluation.py
 def test_evaluation_of_a_model_and_its_saved_model_agree(tiny_segment, tiny_config, tmp_path):
     cfg = _gru(tiny_config)
     model = build_model(cfg)

@@ -32,6 +32,7 @@ def test_two_steps_change_weights_and_write_config(tiny_segment, tiny_config, tm
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow  # two trainings of four steps: ~90 s; tests/training/test_kill_resume.py resumes in the fast suite
 def test_resume_equals_uninterrupted(tiny_segment, tiny_config, tmp_path):
     cfg = _cfg(tiny_config, seed=3)
     one = Trainer(cfg, str(tmp_path / "a"), [tiny_segment], log_fn=lambda s: None)
