@@ -19,26 +19,29 @@ $(STAMP): setup.py constraints.txt Makefile
 # side): 1.75x faster than one process on this project's 2-core machines.
 TEST_WORKERS ?= 2
 # EMULATE_CPU=zen3 caps oneDNN and XLA to AVX2 and turns TensorFlow's oneDNN operations off, as they are on an AMD
-# Zen 3 (ff3d_tf/cpu.py, EMULATIONS); the suite prints the CPU and the caps it ran under.
+# Zen 3 (ff3d_tf/cpu.py, EMULATIONS), for `make test` and `make demo`; the suite prints the CPU and the caps it ran
+# under, the demo writes them into demo_out/demo_summary.json.
 EMULATE_CPU ?=
 EMULATION = $(PY) -c "from ff3d_tf import cpu; print(cpu.emulation_env('$(EMULATE_CPU)'))"
-TEST_ENV = $(if $(EMULATE_CPU),env $$($(EMULATION)),)
+CPU_ENV = $(if $(EMULATE_CPU),env $$($(EMULATION)),)
 
 test: install
 	@$(if $(EMULATE_CPU),$(EMULATION) >/dev/null,true)
-	$(TEST_ENV) $(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile --durations=15 tests
+	$(CPU_ENV) $(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile --durations=15 tests
 
 test-slow: install
 	$(PY) -m pytest -q -m slow tests
 
 # MODEL=gru: the demo with DeFlow's GRU head (tools/demo.py --model gru) instead of the paper's.
 MODEL ?= paper
+DEMO_OUT ?= demo_out
 
 demo: install
-	$(PY) tools/demo.py --out_dir demo_out --model $(MODEL)
+	@$(if $(EMULATE_CPU),$(EMULATION) >/dev/null,true)
+	$(CPU_ENV) $(PY) tools/demo.py --out_dir $(DEMO_OUT) --model $(MODEL)
 
 clean:
-	rm -rf demo_out .pytest_cache
+	rm -rf $(DEMO_OUT) .pytest_cache
 
 # Bazel (docs/bazel.md): Debian's bazel-bootstrap (Bazel 4.2.3) runs the tests offline on the same .venv, one target
 # per test file; tests marked slow stay out (--test_tag_filters in .bazelrc). BAZEL_STARTUP takes startup options

@@ -10,13 +10,14 @@ emulates an older one (e.g. an AVX2-only AMD Zen 3 on an AVX-512 Zen 4):
   TF_ENABLE_ONEDNN_OPTS=0|1            TensorFlow's oneDNN operations off or on; unset, TensorFlow turns them on for
                                        x86 CPUs with AVX512_VNNI, AVX512_BF16 or AMX (TensorFlow 2.9 release notes),
                                        so an AVX2-only CPU runs Eigen kernels and TensorFlow's plain CPU allocator
+  TF_CPU_ALLOCATOR_USE_BFC=true        TensorFlow's CPU allocator as a BFC pool (what oneDNN's operations bring with
+                                       them); unset, an AVX2-only CPU's tensors come from malloc and free
 
 On an AVX2-only CPU, oneDNN has no bfloat16 convolutions: with its operations on, `model.mixed_precision=true` stops
 with oneDNN's "could not create a primitive descriptor". Whether oneDNN's float32 kernels beat Eigen's there depends on
-the job and the model (benchmarks/cpu_onednn_avx2.json, benchmarks/cpu_step_avx2.json). `startup_environment` is the
-project's choice, per job and precision, that the tools apply when they start (tools/_common.py), before TensorFlow
-is imported; a TF_ENABLE_ONEDNN_OPTS the user set is always kept (docs/deployment.md says which setting each job gets
-and why).
+the model and the compile mode (benchmarks/cpu_onednn_avx2.json). `startup_environment` is the project's choice per
+CPU and job, that the tools apply when they start (tools/_common.py), before TensorFlow is imported; what the user set
+is always kept (docs/deployment.md says what each CPU gets and why).
 
 `EMULATIONS` names such caps by the CPU they stand for (`make test EMULATE_CPU=zen3`). No TensorFlow here: whether
 TensorFlow's oneDNN operations are on in a process is `ff3d_tf.internals.onednn_enabled`.
@@ -47,14 +48,16 @@ EMULATIONS = {
 # x86 flags with which TensorFlow turns its oneDNN operations on by itself (TensorFlow 2.9 release notes: AVX512_VNNI,
 # AVX512_BF16, AMX); without them it runs Eigen's kernels.
 TENSORFLOW_ONEDNN_FLAGS = ("avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16", "amx_int8")
-# What `startup_environment` may set.
-STARTUP_KEYS = ("TF_ENABLE_ONEDNN_OPTS",)
+# What `startup_environment` may set, and the jobs it tells apart.
+STARTUP_KEYS = ("TF_ENABLE_ONEDNN_OPTS", "TF_CPU_ALLOCATOR_USE_BFC")
 STARTUP_JOBS = ("train", "inference")
-STARTUP_PRECISIONS = ("float32", "bfloat16", "auto", None)  # None: not known at start
-# TF_ENABLE_ONEDNN_OPTS per job on an x86 CPU whose usable flags reach AVX2 but none of TENSORFLOW_ONEDNN_FLAGS (AMD
-# Zen 3, Intel Haswell to Comet Lake), float32. The measurement behind each entry: benchmarks/cpu_step_avx2.json
-# (tools/benchmark_cpu_step.py, compile mode auto of the job, both libraries capped to AVX2), docs/benchmarks.md.
-AVX2_ONEDNN = {"train": "0", "inference": "0"}
+# The start-up environment per job on an x86 CPU with AVX2 but none of TENSORFLOW_ONEDNN_FLAGS usable (AMD Zen 3,
+# Intel Haswell to Comet Lake): oneDNN off (TensorFlow's own default there; oneDNN has no bfloat16 convolutions there)
+# and TensorFlow's CPU allocator as a BFC pool (XLA's programs and Eigen's kernels then reuse memory instead of
+# faulting in fresh pages every call). The measurement with them ("after"): benchmarks/cpu_step_avx2.json
+# (tools/benchmark_cpu_step.py, both libraries capped to AVX2), docs/benchmarks.md.
+AVX2_STARTUP = {"train": {"TF_ENABLE_ONEDNN_OPTS": "0", "TF_CPU_ALLOCATOR_USE_BFC": "true"},
+                "inference": {"TF_ENABLE_ONEDNN_OPTS": "0", "TF_CPU_ALLOCATOR_USE_BFC": "true"}}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,31 +150,27 @@ def tensorflow_onednn_default(info: CpuInfo, environ=None) -> bool:
     return any(f in usable_flags(info, environ) for f in TENSORFLOW_ONEDNN_FLAGS)
 
 
-def startup_environment(job: str, precision: str | None, info: CpuInfo | None = None, environ=None) -> dict:
-    """What a process about to import TensorFlow for `job` ("train" or "inference") in `precision` (the
-    `model.mixed_precision` asked for: "float32", "bfloat16", "auto", or None when not known at start) should add to
-    its environment: {} or {"TF_ENABLE_ONEDNN_OPTS": "0" | "1"}. `info`: default this machine's CPU.
+def startup_environment(job: str, info: CpuInfo | None = None, environ=None) -> dict:
+    """What a process about to import TensorFlow for `job` ("train" or "inference") adds to its environment
+    (tools/_common.py applies it): a dict of `STARTUP_KEYS` and values. `info`: default this machine's CPU;
+    `environ`: default os.environ (its caps decide which flags are usable).
 
-      - TF_ENABLE_ONEDNN_OPTS already in `environ` (default os.environ): {} (the user's setting is kept);
-      - no readable x86 flags, or no AVX2 among the usable ones: {} (TensorFlow's default);
-      - a CPU on which TensorFlow turns oneDNN on by itself (`tensorflow_onednn_default`): "1", the same as its
-        default, written out so that an emulation under caps gets what the real CPU gets;
-      - an AVX2 CPU below those: "0" for bfloat16 or an unknown precision (oneDNN has no bfloat16 convolutions
-        there: mixed precision never meets oneDNN on it), else `AVX2_ONEDNN[job]` (float32; "auto" resolves to
-        float32 on such a CPU, `ff3d_tf.model.compile.resolve_precision`).
-    """
+      - no readable x86 flags, or no AVX2 among the usable ones: {} (TensorFlow's defaults);
+      - a CPU on which TensorFlow turns oneDNN on by itself (`tensorflow_onednn_default`): TF_ENABLE_ONEDNN_OPTS=1,
+        the same as its default, written out so that an emulation under caps gets what the real CPU gets (oneDNN's
+        own allocator pools memory there);
+      - an AVX2 CPU below those: `AVX2_STARTUP[job]`, whatever the precision: oneDNN stays off, so bfloat16 never
+        meets oneDNN on a CPU where it has no bfloat16 convolutions.
+
+    A key already in `environ` is left out (the user's setting is kept)."""
     if job not in STARTUP_JOBS:
         raise ValueError(f"job={job!r}: one of {', '.join(STARTUP_JOBS)}")
-    if precision not in STARTUP_PRECISIONS:
-        raise ValueError(f"precision={precision!r}: one of {', '.join(map(str, STARTUP_PRECISIONS))}")
     environ = os.environ if environ is None else environ
-    if "TF_ENABLE_ONEDNN_OPTS" in environ:
-        return {}
     info = info or read_cpuinfo()
     if info is None or "avx2" not in usable_flags(info, environ):
-        return {}
-    if tensorflow_onednn_default(info, environ):
-        return {"TF_ENABLE_ONEDNN_OPTS": "1"}
-    if precision in ("bfloat16", None):
-        return {"TF_ENABLE_ONEDNN_OPTS": "0"}
-    return {"TF_ENABLE_ONEDNN_OPTS": AVX2_ONEDNN[job]}
+        chosen = {}
+    elif tensorflow_onednn_default(info, environ):
+        chosen = {"TF_ENABLE_ONEDNN_OPTS": "1"}
+    else:
+        chosen = dict(AVX2_STARTUP[job])
+    return {k: v for k, v in chosen.items() if k not in environ}

@@ -1,4 +1,8 @@
 """ff3d_tf.cpu: /proc/cpuinfo parsing, the ISA caps read from the environment, the flags left usable under them."""
+import os
+
+import pytest
+
 from ff3d_tf import cpu
 
 ZEN4 = ("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 17\nmodel name\t: AMD EPYC 9B14\n"
@@ -38,3 +42,50 @@ def test_description_names_the_cpu_its_flags_and_the_caps():
     assert cpu.one_line(cpu.describe(info, {})).endswith("avx512_bf16; limits: none")
     assert cpu.describe(None, {})["cpu_count"] >= 1  # this machine (or the fallback where it has no cpuinfo)
 
+
+ZEN3 = ("processor\t: 0\nvendor_id\t: AuthenticAMD\ncpu family\t: 25\nmodel\t\t: 1\nmodel name\t: AMD EPYC 7B13\n"
+        "flags\t\t: fpu sse2 avx avx2 fma\n\n")
+SKYLAKE = ("processor\t: 0\nvendor_id\t: GenuineIntel\ncpu family\t: 6\nmodel\t\t: 85\nmodel name\t: Intel Xeon\n"
+           "flags\t\t: fpu sse2 avx2 fma avx512f avx512bw\n\n")
+ARM = "processor\t: 0\nBogoMIPS\t: 50.00\nFeatures\t: fp asimd\n\n"
+
+
+def test_startup_environment_per_cpu_and_job():
+    zen3, zen4, skylake = cpu.parse_cpuinfo(ZEN3), cpu.parse_cpuinfo(ZEN4), cpu.parse_cpuinfo(SKYLAKE)
+    for job in cpu.STARTUP_JOBS:
+        # TensorFlow turns oneDNN on by itself on Zen 4 (avx512_vnni, avx512_bf16): the same, written out.
+        assert cpu.startup_environment(job, zen4, {}) == {"TF_ENABLE_ONEDNN_OPTS": "1"}
+        # AVX2 only (Zen 3), or AVX-512 without VNNI/BF16 (Skylake-SP: TensorFlow leaves oneDNN off there too).
+        assert cpu.startup_environment(job, zen3, {}) == cpu.AVX2_STARTUP[job]
+        assert cpu.startup_environment(job, skylake, {}) == cpu.AVX2_STARTUP[job]
+        assert cpu.startup_environment(job, cpu.parse_cpuinfo(ARM), {}) == {}  # no x86 flags: TensorFlow's defaults
+        # Zen 4 capped to AVX2 is judged as the Zen 3 it emulates; the emulation's own oneDNN setting is kept.
+        caps = {k: v for k, v in cpu.EMULATIONS["zen3"].items() if k != "TF_ENABLE_ONEDNN_OPTS"}
+        assert cpu.startup_environment(job, zen4, caps) == cpu.AVX2_STARTUP[job]
+        assert "TF_ENABLE_ONEDNN_OPTS" not in cpu.startup_environment(job, zen4, cpu.EMULATIONS["zen3_onednn"])
+        # Whatever the user set stays theirs.
+        mine = {"TF_ENABLE_ONEDNN_OPTS": "1", "TF_CPU_ALLOCATOR_USE_BFC": "0"}
+        assert cpu.startup_environment(job, zen3, mine) == {}
+    # Mixed precision never meets oneDNN on an AVX2 CPU: the start-up leaves it off for every job there.
+    assert all(cpu.AVX2_STARTUP[job].get("TF_ENABLE_ONEDNN_OPTS") == "0" for job in cpu.STARTUP_JOBS)
+    assert set(k for job in cpu.STARTUP_JOBS for k in cpu.AVX2_STARTUP[job]) <= set(cpu.STARTUP_KEYS)
+    assert cpu.tensorflow_onednn_default(zen4, {}) and not cpu.tensorflow_onednn_default(zen3, {})
+    with pytest.raises(ValueError, match="train, inference"):
+        cpu.startup_environment("serve", zen3, {})
+
+
+def test_tools_apply_the_startup_environment_per_job(monkeypatch):
+    monkeypatch.syspath_prepend(os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tools"))
+    for key in cpu.STARTUP_KEYS:  # importing _common applies its start-up to os.environ: undone after the test
+        if key in os.environ:
+            monkeypatch.setenv(key, os.environ[key])
+        else:  # recorded as unset, then removed again
+            monkeypatch.setenv(key, "")
+            monkeypatch.delenv(key)
+    import _common
+    zen3_caps = {k: v for k, v in cpu.EMULATIONS["zen3"].items() if k != "TF_ENABLE_ONEDNN_OPTS"}
+    info = cpu.read_cpuinfo()
+    if info is None or "avx2" not in info.flags:
+        return  # the start-up changes nothing without AVX2
+    for tool, job in (("tools/train.py", "train"), ("tools/predict.py", "inference"), ("eval.py", "inference")):
+        assert _common.startup_environment(tool, zen3_caps) == cpu.startup_environment(job, info, zen3_caps)

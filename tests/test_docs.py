@@ -791,6 +791,108 @@ QUOTES = (
 )
 
 
+# -- the training step and the forward on an AVX2-only CPU, before and after (benchmark_cpu_step.py)
+_CS = "cpu_step_avx2.json"
+_CS_MODES = ("auto", "hybrid", "xla", "none")
+
+
+def _cs(path, fmt):
+    return V(_CS, ("summary",) + tuple(path), fmt)
+
+
+def _cs_na(path, fmt):
+    """A figure that a mode may lack (BatchNorm inside an XLA program, a failed variant): "n/a"."""
+    def text(data):
+        try:
+            value = lookup(data, ("summary",) + tuple(path))
+        except (KeyError, TypeError):
+            value = None
+        return "n/a" if value is None else fmt.format(value)
+    return Calc("{}", text, (V(_CS, ()),))
+
+
+_CS_WHERE = Quote(B, "{} ({} cores), oneDNN and XLA capped to AVX2 (`ff3d_tf.cpu.EMULATIONS`, `zen3`: as on an AMD "
+                     "Zen 3)", (V(_CS, "cpu/model_name"), V(_CS, "cpu/cpu_count")))
+CPU_STEP_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_cpu_step.py`, paper config, {} points, batch 1, median of {} training steps after {} "
+                "warm-up steps (wall time, and CPU time of all threads), peak = the process's peak resident memory; "
+                "{}:", (V(_CS, "train_points", "{:,}"), V(_CS, "steps"), V(_CS, "warmup"), _CS_WHERE)),
+    ("`model.compile`", "before: runs", "before: step", "before: CPU", "before: peak", "after: runs", "after: step",
+     "after: CPU", "after: peak"), "llrrrlrrr",
+    tuple((f"`{m}`", *(cell for setting in ("before", "after") for cell in (
+        _cs((f"train/{m}", setting, "mode"), "{}"),
+        _cs_na((f"train/{m}", setting, "step_median_ms"), "{:,.0f} ms"),
+        _cs_na((f"train/{m}", setting, "step_cpu_median_ms"), "{:,.0f} ms"),
+        _cs_na((f"train/{m}", setting, "peak_rss_gb"), "{:.2f} GB")))) for m in _CS_MODES))
+_CS_STAGES = (("point stages (rows A-B, W-Z), forward", "point_forward_ms"),
+              ("point stages, backward", "point_backward_ms"), ("convolutions (rows C-V), forward", "conv_forward_ms"),
+              ("convolutions, backward", "conv_backward_ms"),
+              ("of the convolutions: BatchNorm kernels", "batchnorm_ms"), ("optimizer (Adam)", "optimizer_ms"),
+              ("loss", "loss_ms"), ("rest: copies between kernels and XLA programs, launches", "rest_ms"))
+CPU_STAGES_TABLE = Table(
+    B, Quote(B, "The parts of the step in `auto` (the modes of the table above), each timed alone in the same "
+                "processes after the steps, medians of {} calls:", (V(_CS, "variants/train/auto/after/stage_runs"),)),
+    ("part", "before", "after"), "lrr",
+    tuple((label, _cs_na(("train/auto", "before", "stages", key), "{:,.0f} ms"),
+           _cs_na(("train/auto", "after", "stages", key), "{:,.0f} ms")) for label, key in _CS_STAGES))
+CPU_FORWARD_TABLE = Table(
+    B, Quote(B, "The forward, median of {} calls after {} warm-up calls, both point counts in one process; {}:",
+             (V(_CS, "runs"), V(_CS, "warmup"), _CS_WHERE)),
+    ("`model.compile`", "before: 32,000 points", "before: 1,000,000 points", "before: ratio", "after: runs",
+     "after: 32,000 points", "after: 1,000,000 points", "after: ratio"), "lrrrlrrr",
+    tuple((f"`{m}`", _cs_na((f"forward/{m}", "before", "median_ms", "32000"), "{:,.0f} ms"),
+           _cs_na((f"forward/{m}", "before", "median_ms", "1000000"), "{:,.0f} ms"),
+           _cs_na((f"forward/{m}", "before", "t1m_over_t32k"), "{:.2f}"), _cs((f"forward/{m}", "after", "mode"), "{}"),
+           _cs_na((f"forward/{m}", "after", "median_ms", "32000"), "{:,.0f} ms"),
+           _cs_na((f"forward/{m}", "after", "median_ms", "1000000"), "{:,.0f} ms"),
+           _cs_na((f"forward/{m}", "after", "t1m_over_t32k"), "{:.2f}")) for m in _CS_MODES))
+
+
+def _target(what, figure, goal, fmt, at_least):
+    """(what, the figure, the target, whether it is met)."""
+    met = Calc("{}", lambda p, g: "yes" if (p >= g if at_least else p <= g) else "no", (figure, goal))
+    return what, figure, Calc(fmt, lambda g: g, (goal,)), met
+
+
+CPU_TARGETS_TABLE = Table(
+    B, Quote(B, "The issue's figures on {} (PyTorch FastFlow3D: {} ms a training step, {} GB peak, {} ms and {} ms "
+                "a forward at 32,000 and 1,000,000 points; ff3d_tf before: {} ms, {} GB, {} ms and {} ms), scaled by "
+                "the after / before ratios of `auto` in the tables above (by wall time, and by CPU time where named); "
+                "the forward's ratio of point counts is the table's own:",
+             (V(_CS, "peer/cpu"), V(_CS, "peer/peer/train_step_32000_ms", "{:,.0f}"),
+              V(_CS, "peer/peer/train_step_32000_peak_gb", "{:.2f}"), V(_CS, "peer/peer/forward_32000_ms", "{:,.0f}"),
+              V(_CS, "peer/peer/forward_1000000_ms", "{:,.0f}"),
+              V(_CS, "peer/ff3d_tf_before/train_step_32000_ms", "{:,.0f}"),
+              V(_CS, "peer/ff3d_tf_before/train_step_32000_peak_gb", "{:.2f}"),
+              V(_CS, "peer/ff3d_tf_before/forward_32000_ms", "{:,.0f}"),
+              V(_CS, "peer/ff3d_tf_before/forward_1000000_ms", "{:,.0f}"))),
+    ("figure", "ff3d_tf after", "target", "met"), "lrrl",
+    (_target("training step, 32,000 points: speed-up over the peer",
+             V(_CS, "projection_zen3/train_step_speedup_over_peer", "{:.2f}x"),
+             V(_CS, "targets/train_step_speedup_over_peer"), "{:.2f}x", True),
+     _target("the same by CPU time", V(_CS, "projection_zen3/train_step_speedup_over_peer_by_cpu_time", "{:.2f}x"),
+             V(_CS, "targets/train_step_speedup_over_peer"), "{:.2f}x", True),
+     _target("training step, 32,000 points: peak memory",
+             V(_CS, "projection_zen3/train_step_32000_peak_gb", "{:.2f} GB"), V(_CS, "targets/train_step_peak_gb"),
+             "{:.2f} GB", False),
+     _target("forward, 32,000 points: speed-up over the peer",
+             V(_CS, "projection_zen3/forward_32000_speedup_over_peer", "{:.2f}x"),
+             V(_CS, "targets/forward_32000_speedup_over_peer"), "{:.2f}x", True),
+     _target("the same by CPU time",
+             V(_CS, "projection_zen3/forward_32000_speedup_over_peer_by_cpu_time", "{:.2f}x"),
+             V(_CS, "targets/forward_32000_speedup_over_peer"), "{:.2f}x", True),
+     _target("forward, 1,000,000 points: speed-up over the peer",
+             V(_CS, "projection_zen3/forward_1000000_speedup_over_peer", "{:.2f}x"),
+             V(_CS, "targets/forward_1000000_speedup_over_peer"), "{:.2f}x", True),
+     _target("the same by CPU time",
+             V(_CS, "projection_zen3/forward_1000000_speedup_over_peer_by_cpu_time", "{:.2f}x"),
+             V(_CS, "targets/forward_1000000_speedup_over_peer"), "{:.2f}x", True),
+     _target("forward: time at 1,000,000 points / time at 32,000 points",
+             V(_CS, ("summary", "forward/auto", "after", "t1m_over_t32k"), "{:.2f}"),
+             V(_CS, "targets/forward_1m_over_32k"), "{:.2f}", False)))
+TABLES += (CPU_STEP_TABLE, CPU_STAGES_TABLE, CPU_FORWARD_TABLE, CPU_TARGETS_TABLE)
+
+
 def test_lookup_render_and_the_figure_pattern():
     data = {"latency": {"32000": {"auto/float32": {"ms": 1400.07}}}, "runs": [{"p": 1, "v": 2}, {"p": 2, "v": 3}],
             "by_int": {5: "five"}}

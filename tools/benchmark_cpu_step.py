@@ -7,9 +7,11 @@ python tools/benchmark_cpu_step.py --out benchmarks/cpu_step_avx2.json [--config
 
 --cap names the ISA caps of `ff3d_tf.cpu.EMULATIONS` every child runs under (zen3: oneDNN and XLA capped to AVX2, as
 on an AMD Zen 3); "before" is the process as TensorFlow starts it there and the point stages as they were, "after" the
-start-up environment of `ff3d_tf.cpu.startup_environment` for the job and the point stages' per-cloud programs. Each
-figure is this machine's under the caps; `projection_zen3` scales the issue's Zen 3 figures by its ratios.
+start-up environment of `ff3d_tf.cpu.startup_environment` for the job and the point stages' per-cloud programs,
+"after_onednn" that with TensorFlow's oneDNN operations on. Each figure is this machine's under the caps;
+`projection_zen3` scales the issue's Zen 3 figures by its ratios.
 """
+import json
 import os
 
 import _common
@@ -20,10 +22,11 @@ from ff3d_tf.training import cpu_step_study
 def main():
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--out", default="benchmarks/cpu_step_avx2.json")
-    p.add_argument("--cap", default="zen3", help="ISA caps: a name of ff3d_tf.cpu.EMULATIONS")
+    p.add_argument("--cap", default="zen3", help="ISA caps: a name of ff3d_tf.cpu.EMULATIONS, or none (this CPU's own)")
     p.add_argument("--modes", default=",".join(cpu_step_study.MODES))
     p.add_argument("--jobs", default=",".join(cpu_step_study.JOBS))
-    p.add_argument("--settings", default=",".join(cpu_step_study.SETTINGS))
+    p.add_argument("--settings", default=",".join(cpu_step_study.SETTINGS),
+                   help=f"of {', '.join(cpu_step_study.ALL_SETTINGS)}")
     p.add_argument("--train_points", type=int, default=32000)
     p.add_argument("--forward_points", default="32000,1000000")
     p.add_argument("--steps", type=int, default=3, help="measured training steps per child")
@@ -32,8 +35,15 @@ def main():
     p.add_argument("--stage_runs", type=int, default=3, help="measured calls of each part of the step")
     p.add_argument("--no_stages", action="store_true", help="time the whole step only")
     p.add_argument("--cores", type=int, default=2)
+    p.add_argument("--rounds", type=int, default=1, help="every variant once per round, in turn; medians over rounds")
     p.add_argument("--timeout_s", type=float, default=None, help="stop a child after this long (recorded)")
+    p.add_argument("--resummarize", action="store_true",
+                   help="measure nothing: compute --out's summary again from its variants")
     args = p.parse_args()
+    if args.resummarize:
+        with open(args.out) as f:
+            _common.json_saver(args.out)(cpu_step_study.resummarize(json.load(f)))
+        return
     _common.load(args)  # validates the config and --set here, before any child starts
     words = {name: [w for w in getattr(args, name).split(",") if w] for name in ("modes", "jobs", "settings")}
     save = _common.json_saver(args.out)
@@ -42,7 +52,7 @@ def main():
         words["modes"], words["jobs"], words["settings"], args.cap, args.steps, args.warmup, args.runs,
         not args.no_stages, args.stage_runs, args.cores, args.timeout_s,
         save=lambda result: save({**result, "command": "python tools/benchmark_cpu_step.py " + " ".join(
-            os.sys.argv[1:])}))
+            os.sys.argv[1:])}), rounds=args.rounds)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,9 @@ changed starts again from nothing (its outputs removed first). An interrupted st
 already generated are skipped, training resumes from its newest intact checkpoint, the SavedModel is written to
 `saved_model.partial` and renamed when complete. So a demo interrupted at any stage continues where it stopped: run
 the same command again.
+
+At the end `OUT/demo_summary.json` holds the CPU (and any ISA caps, `make demo EMULATE_CPU=zen3`), each stage's
+seconds, the whole run's, and the model's error on moving points against zero flow (docs/benchmarks.md quotes one).
 """
 import argparse
 import json
@@ -21,6 +24,7 @@ import time
 
 import _common  # noqa: F401  (the repository on sys.path)
 
+from ff3d_tf import bench, cpu
 from ff3d_tf.stages import StageError, Stages
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -83,21 +87,28 @@ def main():
     args = p.parse_args()
     out = args.out_dir
     t0 = time.time()
+    stages = Stages(f"{out}/stages", PLAN)
     try:
-        _run_stages(args, Stages(f"{out}/stages", PLAN))
+        _run_stages(args, stages)
     except StageError as e:
         sys.exit(f"demo: {e}")
+    seconds = time.time() - t0
     with open(f"{out}/metrics.json") as f:
         m = json.load(f)
     with open(f"{out}/metrics_zero_flow.json") as f:
         z = json.load(f)
-    print(f"\ndemo finished in {time.time() - t0:.0f} s")
-    ratio = m["all/moving/mean_l2_mps"] / z["all/moving/mean_l2_mps"] if z["all/moving/mean_l2_mps"] else float("nan")
-    print(f"all/moving/mean_l2_mps: model {m['all/moving/mean_l2_mps']:.3f} vs zero flow "
-          f"{z['all/moving/mean_l2_mps']:.3f} (ratio {ratio:.2f})")
+    moving, moving_zero = m["all/moving/mean_l2_mps"], z["all/moving/mean_l2_mps"]
+    ratio = moving / moving_zero if moving_zero else float("nan")
+    bench.write_json(f"{out}/demo_summary.json", {
+        "cpu": cpu.describe(), "model": args.model, "config": args.config, "set": args.set,
+        "seconds": seconds, "stage_seconds": stages.seconds, "skipped": stages.skipped,
+        "moving_mean_l2_mps": moving, "zero_flow_moving_mean_l2_mps": moving_zero, "moving_over_zero_flow": ratio,
+        "stationary_mean_l2_mps": m["all/stationary/mean_l2_mps"]})
+    print(f"\ndemo finished in {seconds:.0f} s")
+    print(f"all/moving/mean_l2_mps: model {moving:.3f} vs zero flow {moving_zero:.3f} (ratio {ratio:.2f})")
     print(f"all/stationary/mean_l2_mps: model {m['all/stationary/mean_l2_mps']:.3f}")
     print(f"outputs under {out}/: metrics.json, metrics_zero_flow.json, metrics.csv, saved_model/, predictions/*.png, "
-          f"stats/*.png")
+          f"stats/*.png, demo_summary.json")
 
 
 if __name__ == "__main__":

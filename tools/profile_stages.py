@@ -3,7 +3,8 @@ ops of one forward or training step from the TensorFlow profiler. Prints a table
 
 python tools/profile_stages.py --config configs/fastflow3d_waymo.yaml --points 32000,1000000 [--trace_dir D]
 Stages are timed alone, interleaved round robin (ratios within one run are what to compare on a shared machine):
-  encode  rows A-B (pillarize, point encoder, scatter), XLA and graph;
+  encode  rows A-B (pillarize, point encoder, scatter), XLA, graph, and hybrid (compile mode hybrid's layout: each
+          cloud's encoding and scatter its own XLA program, the two run at once, `compile.hybrid_encode`);
   dense   rows C-V (convolutions), XLA and graph (oneDNN on CPU);
   decode  rows W-Z (ungrid, head), XLA and graph.
 With --trace_dir, each --profile_modes forward and training step at the first point count is traced with
@@ -20,8 +21,9 @@ import _common
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf import bench, internals
+from ff3d_tf import bench, cpu, internals
 from ff3d_tf.model import build_model
+from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.training import bench_steps
 
 
@@ -32,6 +34,7 @@ def stage_times(model, inputs: dict, runs: int) -> dict:
         fns[f"encode/{backend}"] = tf.function(lambda x: model.encode_points(x), jit_compile=jit)
         fns[f"dense/{backend}"] = tf.function(lambda b: model.dense_stages(b), jit_compile=jit)
         fns[f"decode/{backend}"] = tf.function(lambda g, e: model.decode_points(g, e), jit_compile=jit)
+    fns["encode/hybrid"] = tf.function(lambda x: compile_lib.hybrid_encode(model.encode_points, x, False))
     encoded = fns["encode/xla"](inputs)
     grid = fns["dense/graph"](encoded["bev_features"])
     args = {"encode": (inputs,), "dense": (encoded["bev_features"],), "decode": (grid, encoded)}
@@ -82,7 +85,7 @@ def main():
     cfg = _common.load(args)
     model = build_model(cfg, "none")
     rng = np.random.default_rng(0)
-    result = {"stages": {}, "top_ops": {}}
+    result = {"cpu": cpu.describe(), "stages": {}, "top_ops": {}}
     for n in [int(v) for v in args.points.split(",")]:
         inputs, _ = bench_steps.example(cfg, rng, n)
         result["stages"][str(n)] = stage_times(model, inputs, args.runs)

@@ -3,15 +3,31 @@
 The model has two kinds of work. The point stages (pillarization, the point encoder and its scatter into the grid;
 the ungrid head) are gathers, scatters and small matmuls over up to millions of points: XLA fuses them into a few
 loops and keeps no per-op temporaries, less time and memory than TensorFlow's kernels. The dense stages (the
-convolutional encoder and decoder on the 512 x 512 grids) are convolutions: on CPU, TensorFlow's oneDNN kernels are
-faster than XLA's (see benchmarks/latency_*.json, `tools/benchmark_latency.py --modes`); on GPU both call cuDNN and
-XLA fuses the rest, so the whole program goes to XLA there.
+convolutional encoder and decoder on the 512 x 512 grids) are convolutions: on a CPU where TensorFlow runs oneDNN's
+AVX-512 kernels, those are faster than XLA's (see benchmarks/latency_*.json, `tools/benchmark_latency.py --modes`);
+on an AVX2-only CPU, XLA's one program holds the training step's memory lowest (benchmarks/cpu_step_avx2.json); on
+GPU both call cuDNN and XLA fuses the rest, so the whole program goes to XLA there.
 
   xla     one XLA program for the whole forward (and for the training step's forward + backward).
-  hybrid  the point stages as their own XLA programs (forward and their gradients), the dense stages as graph
+  hybrid  the point stages as their own XLA programs (forward and their gradients; each cloud's point encoding its
+          own program, so that the two clouds' scatters run at once, `hybrid_encode`), the dense stages as graph
           kernels; the training step's loss, gradients and optimizer update run in the same graph.
   none    no XLA anywhere (reference and debugging).
-  auto    hybrid on CPU, xla where a GPU or TPU is visible.
+  auto    xla where a GPU or TPU is visible; on a CPU, per job ("train": the training step, "inference": the
+          forward) and per kind of CPU (`cpu_class`), the mode chosen from measurements there (`AUTO_CPU`).
+
+`cpu_class` sorts a CPU process by the convolution kernels TensorFlow's graph has there: "onednn_avx512" (its oneDNN
+operations on, with AVX-512 kernels: AMD Zen 4, Intel Skylake-SP and later), "onednn_avx2" (oneDNN on, AVX2 kernels
+only: TF_ENABLE_ONEDNN_OPTS=1 on an AMD Zen 3 or an Intel Haswell to Comet Lake) and "eigen" (oneDNN off: Eigen's
+kernels, TensorFlow's default on an AVX2-only CPU and the project's start-up choice there,
+`ff3d_tf.cpu.startup_environment`). The rule of each entry and its measurement:
+  onednn_avx512  hybrid for both jobs, the fastest forward there (benchmarks/latency_cpu.json);
+  eigen          per job, the mode with the lowest peak memory (with TensorFlow's BFC CPU allocator, the start-up's
+                 choice): xla for the training step, hybrid for the forward; `none` and `hybrid` train faster there
+                 but hold more memory (benchmarks/cpu_step_avx2.json, "after", tools/benchmark_cpu_step.py with both
+                 libraries capped to AVX2; docs/benchmarks.md, "The training step on AVX2-only CPUs");
+  onednn_avx2    xla for both jobs: measured with `tools/benchmark_cpu_step.py --settings after_onednn`, a run whose
+                 file is not among benchmarks/.
 
 The mode lives on the model (`FastFlow3D.compile_mode`, set by `build_model`) and applies whenever the model is traced
 into a `tf.function`, whatever that function's own `jit_compile`. A caller that compiles the whole call with XLA
@@ -39,7 +55,13 @@ from ff3d_tf import cpu
 from ff3d_tf.config import COMPILE_MODES
 
 RESOLVED_MODES = tuple(m for m in COMPILE_MODES if m != "auto")
-AUTO_CHOICE = {"CPU": "hybrid", "GPU": "xla", "TPU": "xla"}
+AUTO_CHOICE = {"GPU": "xla", "TPU": "xla"}  # `model.compile=auto` off the CPU, for every job
+JOBS = ("train", "inference")
+CPU_CLASSES = ("onednn_avx512", "onednn_avx2", "eigen")
+# `model.compile=auto` on a CPU: (cpu_class, job) -> mode (module docstring; measured in the files it names).
+AUTO_CPU = {("onednn_avx512", "train"): "hybrid", ("onednn_avx512", "inference"): "hybrid",
+            ("onednn_avx2", "train"): "xla", ("onednn_avx2", "inference"): "xla",
+            ("eigen", "train"): "xla", ("eigen", "inference"): "hybrid"}
 PRECISIONS = ("float32", "bfloat16")  # what `resolve_precision` returns: the compute dtype of rows C-V
 # CPU flags (Linux /proc/cpuinfo) under which oneDNN has bfloat16 convolution kernels of its own: AVX-512 BF16
 # (Intel Cooper Lake, Sapphire Rapids and later; AMD Zen 4 and later) and AMX-BF16 (Intel Sapphire Rapids and later,
@@ -55,13 +77,36 @@ def accelerator_type() -> str:
     return "CPU"
 
 
-def resolve_compile_mode(mode: str, device_type: str | None = None) -> str:
-    """"auto" -> the mode for `device_type` (default: the visible accelerator); other modes unchanged."""
+def cpu_class(onednn_enabled: bool | None = None, info: cpu.CpuInfo | None = None, environ=None) -> str:
+    """This process's kind of CPU for `AUTO_CPU`: "onednn_avx512", "onednn_avx2" or "eigen" (module docstring).
+    `onednn_enabled`: whether TensorFlow's oneDNN operations are on (default: in this process); `info`, `environ`:
+    the CPU and the caps on it (default: this machine's, `ff3d_tf.cpu.usable_flags`)."""
+    if onednn_enabled is None:
+        from ff3d_tf import internals
+        onednn_enabled = internals.onednn_enabled()
+    if not onednn_enabled:
+        return "eigen"
+    info = info or cpu.read_cpuinfo()
+    return "onednn_avx512" if info is not None and "avx512f" in cpu.usable_flags(info, environ) else "onednn_avx2"
+
+
+def resolve_compile_mode(mode: str, device_type: str | None = None, job: str = "inference",
+                         cpu_kind: str | None = None) -> str:
+    """"auto" -> the mode for `job` ("train" or "inference") on `device_type` (default: the visible accelerator),
+    on a CPU of `cpu_kind` (default: `cpu_class()` of this process); other modes unchanged."""
     if mode not in COMPILE_MODES:
         raise ValueError(f"model.compile={mode!r}: one of {', '.join(COMPILE_MODES)}")
+    if job not in JOBS:
+        raise ValueError(f"job={job!r}: one of {', '.join(JOBS)}")
     if mode != "auto":
         return mode
-    return AUTO_CHOICE[device_type or accelerator_type()]
+    device_type = device_type or accelerator_type()
+    if device_type != "CPU":
+        return AUTO_CHOICE[device_type]
+    kind = cpu_kind or cpu_class()
+    if kind not in CPU_CLASSES:
+        raise ValueError(f"cpu_kind={kind!r}: one of {', '.join(CPU_CLASSES)}")
+    return AUTO_CPU[(kind, job)]
 
 
 def check_resolved(mode: str) -> str:
@@ -84,11 +129,10 @@ def xla_function(fn):
     return tf.function(fn, jit_compile=True, autograph=False)
 
 
-# How compile mode hybrid splits the point encoding into XLA programs (`hybrid_encode`): "one" (both clouds in one
-# program, the default until tools/benchmark_cpu_step.py has measured the other) or "per_cloud" (each cloud's stages
-# as programs of their own, which TensorFlow's executor can run side by side).
+# How compile mode hybrid splits the point encoding into XLA programs (`hybrid_encode`): "per_cloud" (the default)
+# or "one" (both clouds in one program, the layout before the split; kept for the studies that compare the two).
 HYBRID_POINT_PROGRAMS = ("per_cloud", "one")
-hybrid_point_programs = "one"
+hybrid_point_programs = "per_cloud"
 
 
 def hybrid_encode(encode_points, inputs, training):
@@ -140,12 +184,30 @@ def bf16_convolutions_faster(vendor: str, flags: tuple[str, ...]) -> tuple[bool,
 
 
 def resolve_precision(mixed_precision, compile_mode: str, device_type: str | None = None,
-                      cpu: tuple[str, tuple[str, ...]] | None = None) -> tuple[str, str]:
+                      cpu: tuple[str, tuple[str, ...]] | None = None,
+                      onednn_enabled: bool | None = None) -> tuple[str, str]:
     """(precision, reason): `model.mixed_precision` (false, true or "auto") -> "float32" or "bfloat16" for a resolved
     `compile_mode` on `device_type` (default: the visible accelerator) with `cpu` = (vendor, flags) (default:
-    `cpu_bf16_support()`). `reason` says why, for the log line at start."""
+    `cpu_bf16_support()`). `reason` says why, for the log line at start.
+
+    bfloat16 never meets TensorFlow's oneDNN operations on a CPU whose oneDNN has no bfloat16 convolutions (none of
+    `BF16_CPU_FLAGS` usable, e.g. an AVX2-only CPU): `true` there, in compile mode hybrid or none with oneDNN on
+    (`onednn_enabled`, default: this process), raises ValueError saying how to run it (oneDNN's own error, "could not
+    create a primitive descriptor", would come at the first convolution). The tools' start-up leaves oneDNN off on
+    such CPUs (`ff3d_tf.cpu.startup_environment`), so only a TF_ENABLE_ONEDNN_OPTS=1 set by hand gets here."""
     check_resolved(compile_mode)
     if mixed_precision is True or mixed_precision is False:
+        if mixed_precision and compile_mode != "xla" and (device_type or accelerator_type()) == "CPU":
+            vendor, flags = cpu_bf16_support() if cpu is None else cpu
+            if onednn_enabled is None:
+                from ff3d_tf import internals
+                onednn_enabled = internals.onednn_enabled()
+            if onednn_enabled and not flags:
+                raise ValueError(
+                    f"model.mixed_precision=true with TensorFlow's oneDNN operations on, on a CPU with none of "
+                    f"{', '.join(BF16_CPU_FLAGS)} (usable): oneDNN has no bfloat16 convolutions there. Start Python "
+                    f"with TF_ENABLE_ONEDNN_OPTS=0 (Eigen's bfloat16 kernels), or train in float32 "
+                    f"(model.mixed_precision=false)")
         return ("bfloat16" if mixed_precision else "float32"), "as set"
     if mixed_precision != "auto":
         raise ValueError(f"model.mixed_precision={mixed_precision!r}: true, false or auto")

@@ -271,18 +271,19 @@ def model_kwargs(cfg: ExperimentConfig) -> dict:
 
 
 def build_model(cfg: ExperimentConfig, compile_mode: str | None = None,
-                point_chunk_size: int | None = None) -> FastFlow3D:
+                point_chunk_size: int | None = None, job: str = "inference") -> FastFlow3D:
     """The model of a config, with its variables created (so count_params works before the first call).
 
-    `compile_mode` overrides `cfg.model.compile`; "auto" is resolved for the visible devices (and logged).
+    `compile_mode` overrides `cfg.model.compile`; "auto" is resolved for the visible devices and `job` ("train" for
+    the Trainer's model, "inference" otherwise; `compile_lib.resolve_compile_mode`), and logged.
     `cfg.model.mixed_precision` is resolved for that mode, the device and the CPU's flags
     (`compile_lib.resolve_precision`, logged: "model.mixed_precision=auto -> bfloat16 (AMD CPU has avx512_bf16; ...)").
     `point_chunk_size` overrides the point encoder's chunk (default `ops.POINT_CHUNK`; tests take a small one).
     """
     m = cfg.model
     requested = m.compile if compile_mode is None else compile_mode
-    resolved = compile_lib.resolve_compile_mode(requested)
-    _LOG.info("model.compile=%s -> %s (%s)", requested, resolved, compile_lib.describe(resolved))
+    resolved = compile_lib.resolve_compile_mode(requested, job=job)
+    _LOG.info("model.compile=%s -> %s for %s (%s)", requested, resolved, job, compile_lib.describe(resolved))
     precision, reason = compile_lib.resolve_precision(m.mixed_precision, resolved)
     _LOG.info("model.mixed_precision=%s -> %s (%s; %s)", str(m.mixed_precision).lower(), precision, reason,
               compile_lib.describe_precision(precision))

@@ -9,7 +9,8 @@ Every reading comes from a fresh child process (`ff3d_tf.children.run_child`, pi
             (hybrid on every CPU);
             "after": the start-up environment the tools choose for the job (`ff3d_tf.cpu.startup_environment`, under
             the same ISA caps), the clouds' point programs apart ("per_cloud"), `auto` by
-            `compile_lib.resolve_compile_mode` for the job.
+            `compile_lib.resolve_compile_mode` for the job;
+            "after_onednn" (on request): "after" with TensorFlow's oneDNN operations on.
   job       "train" (the Trainer's own step: forward, loss, backward, Adam; batch 1, the process's peak resident
             memory) or "forward" (the compiled forward at each point count, in one process, round robin).
   mode      `model.compile`: auto, hybrid, xla, none.
@@ -19,8 +20,8 @@ A training child also times the step's parts alone (`stage_times`, same process,
 BatchNorm kernels inside the latter (profiler, TensorFlow kernels only), Adam's update, the loss; what the parts leave
 of the whole step is the rest (copies between TensorFlow kernels and XLA programs, program launches, the tape).
 
-No PyTorch here: the PyTorch FastFlow3D figures of the comparison are the issue's, measured on the real CPUs
-(`PEER`); `projection` scales them by this run's ratios.
+No PyTorch here: the PyTorch FastFlow3D figures of the comparison are the issue's, measured on a real Zen 3
+(benchmarks/cpu_step_peer.json); `projection` scales ff3d_tf's figures there by this run's ratios.
 """
 from __future__ import annotations
 
@@ -32,41 +33,59 @@ from ff3d_tf import bench, children, cpu
 
 MODULE = __name__
 SETTINGS = ("before", "after")
+# A setting measured on request (--settings): "after" with TensorFlow's oneDNN operations on (TF_ENABLE_ONEDNN_OPTS=1,
+# what the start-up does not choose on an AVX2-only CPU): the measurement behind that choice and behind
+# `compile_lib.AUTO_CPU`'s "onednn_avx2" entries.
+ALL_SETTINGS = SETTINGS + ("after_onednn",)
 JOBS = ("train", "forward")
 MODES = ("auto", "hybrid", "xla", "none")
-# The PyTorch FastFlow3D peer (torch CPU, its own forward, loss and Adam; paper config, 2 threads, batch 1, median of
-# 3 after 2 warm-ups) and ff3d_tf before this change, both as the issue measured them on a 2-core AMD EPYC Zen 3 (AVX2,
-# no AVX-512): the anchor of `projection`, which cannot be measured here (no torch).
-PEER = {"cpu": "AMD EPYC Zen 3 (AVX2, no AVX-512, no bfloat16), 2 cores",
-        "peer": {"train_step_32000_ms": 10308.0, "train_step_32000_peak_gb": 2.26, "forward_32000_ms": 4156.0,
-                 "forward_1000000_ms": 7489.0},
-        "ff3d_tf_before": {"train_step_32000_ms": 14700.0, "train_step_32000_peak_gb": 4.08,
-                           "forward_32000_ms": 3018.0, "forward_1000000_ms": 3373.0}}
-TARGETS = {"train_step_speedup_over_peer": 1.3, "train_step_peak_gb": 2.5, "forward_32000_speedup_over_peer": 1.5,
-           "forward_1000000_speedup_over_peer": 2.5, "forward_1m_over_32k": 1.15}
+# The PyTorch FastFlow3D peer and ff3d_tf before this change as the issue measured them on an AMD Zen 3, and the
+# issue's targets: the anchor of `projection`, which cannot be measured here (no torch).
+PEER_FILE = os.path.join(children.ROOT, "benchmarks", "cpu_step_peer.json")
 
+
+def peer_figures(path: str = PEER_FILE) -> dict:
+    """The issue's figures (benchmarks/cpu_step_peer.json): {"cpu", "peer", "ff3d_tf_before", "targets", "note"}."""
+    with open(path) as f:
+        return json.load(f)
+
+
+PAPER_CONFIG = "configs/fastflow3d_waymo.yaml"
 
 # -- the environment of a variant --------------------------------------------------------------------------------------
+STARTUP_JOB = {"train": "train", "forward": "inference"}  # this study's jobs -> `cpu.startup_environment`'s
+NO_CAP = "none"  # `cap` for this CPU's own kernels: "before" is then TensorFlow's own default on it
+
+
 def variant_environment(setting: str, job: str, cap: str, base: Mapping | None = None) -> dict:
     """The environment of a child: `base` (default os.environ) without the keys the emulations and the start-up rule
-    set, plus the caps of `cpu.EMULATIONS[cap]` and then, for "after", what `cpu.startup_environment` chooses for
-    `job` on this CPU under those caps (float32: the studies measure the default precision)."""
+    set, plus the caps of `cpu.EMULATIONS[cap]`, and for "after" with TensorFlow's oneDNN setting of the emulation
+    replaced by what `cpu.startup_environment` chooses for `job` on this CPU under those caps."""
     base = dict(os.environ if base is None else base)
     knobs = {k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS)
     env = {k: v for k, v in base.items() if k not in knobs}
-    caps = dict(cpu.EMULATIONS[cap])
-    if setting == "after":
+    caps = dict(cpu.EMULATIONS[cap]) if cap != NO_CAP else {}
+    if setting in ("after", "after_onednn"):
         caps.pop("TF_ENABLE_ONEDNN_OPTS", None)
-        caps.update(cpu.startup_environment(job, "float32", environ=caps))
+        caps.update(cpu.startup_environment(STARTUP_JOB[job], environ=caps))
+    if setting == "after_onednn":
+        caps["TF_ENABLE_ONEDNN_OPTS"] = "1"
     return {**env, **caps}
 
 
-def resolved_mode(setting: str, mode: str, job: str) -> str:
-    """The compile mode a variant runs: "auto" by the rule of `setting` (before: hybrid on a CPU)."""
-    from ff3d_tf.model import compile as compile_lib
-    if mode == "auto" and setting == "before":
+def resolved_mode(setting: str, mode: str, job: str, environment: Mapping) -> str:
+    """The compile mode a variant runs: "auto" by the rule of `setting` (before: hybrid on every CPU; after:
+    `compile_lib.resolve_compile_mode` for the job on the CPU class the child's `environment` gives)."""
+    if mode != "auto":
+        return mode
+    if setting == "before":
         return "hybrid"
-    return compile_lib.resolve_compile_mode(mode, "CPU", job=job)
+    from ff3d_tf.model import compile as compile_lib
+    info = cpu.read_cpuinfo()
+    flag = environment.get("TF_ENABLE_ONEDNN_OPTS")
+    onednn = flag == "1" if flag is not None else bool(info and cpu.tensorflow_onednn_default(info, environment))
+    kind = compile_lib.cpu_class(onednn, info, environment)
+    return compile_lib.resolve_compile_mode(mode, "CPU", job=STARTUP_JOB[job], cpu_kind=kind)
 
 
 # -- in the child ------------------------------------------------------------------------------------------------------
@@ -99,6 +118,7 @@ def train_child(config: str, overrides: list, mode: str, points: int, steps: int
            "peak_rss_gb": bench.proc_status("VmHWM"), "rss_after_gb": bench.proc_status("VmRSS")}
     out["step_median_ms"] = bench.middle(out["step_ms"])
     if stages:  # after the steps: the peak above is the step's alone
+        out["stage_runs"] = stage_runs
         try:
             out["stages"] = stage_times(cfg, mode, labelled, stage_runs)
         except Exception as e:  # noqa: BLE001 -- the step's figures stand without the parts
@@ -121,10 +141,12 @@ def forward_child(config: str, overrides: list, mode: str, points: list, runs: i
     rng = np.random.default_rng(0)
     inputs = {n: bench_steps.example(cfg, rng, n)[0] for n in points}
     calls = {str(n): bench.fetched(lambda x=x: forward(x)) for n, x in inputs.items()}
-    readings = bench.round_robin(calls, runs, warmup)
+    readings = bench.round_robin(calls, runs, warmup, reading=bench.timed_with_usage)
     out = {**_header(mode), "point_programs": point_programs,
-           "forward_ms": {n: [r["ms"] for r in rs] for n, rs in readings.items()}}
+           "forward_ms": {n: [r["ms"] for r in rs] for n, rs in readings.items()},
+           "forward_cpu_ms": {n: [r["cpu_ms"] for r in rs] for n, rs in readings.items()}}
     out["median_ms"] = {n: bench.middle(v) for n, v in out["forward_ms"].items()}
+    out["cpu_median_ms"] = {n: bench.middle(v) for n, v in out["forward_cpu_ms"].items()}
     out["peak_rss_gb"] = bench.proc_status("VmHWM")
     return out
 
@@ -264,84 +286,113 @@ def stage_summary(stages: Mapping, step_ms: float) -> dict:
     return out
 
 
-def projection(summary: Mapping) -> dict:
-    """The issue's Zen 3 figures of ff3d_tf before, scaled by this run's after/before ratios (AVX2 caps), beside the
-    peer's: what the change is expected to give on that CPU, and the targets met by that expectation."""
-    before, peer = PEER["ff3d_tf_before"], PEER["peer"]
+def projection(summary: Mapping, figures: Mapping | None = None) -> dict:
+    """The issue's Zen 3 figures of ff3d_tf before (`figures`, default `peer_figures()`), scaled by this run's
+    after/before ratios (AVX2 caps), beside the peer's: what the change is expected to give on that CPU."""
+    figures = figures or peer_figures()
+    before, peer = figures["ff3d_tf_before"], figures["peer"]
     out = {}
-    step = summary.get("train/auto")
-    if step:
+
+    def both(row):
+        return row and all(s in row and "error" not in row[s] for s in SETTINGS)
+    step, fwd = summary.get("train/auto"), summary.get("forward/auto")
+    if both(step):
         ratio = step["after"]["step_median_ms"] / step["before"]["step_median_ms"]
         out["train_step_32000_ms"] = before["train_step_32000_ms"] * ratio
         out["train_step_speedup_over_peer"] = peer["train_step_32000_ms"] / out["train_step_32000_ms"]
+        if step["before"].get("step_cpu_median_ms") and step["after"].get("step_cpu_median_ms"):
+            # By CPU time (user + system, all threads): less moved by other load on a shared machine than wall time.
+            cpu_ratio = step["after"]["step_cpu_median_ms"] / step["before"]["step_cpu_median_ms"]
+            out["train_step_32000_ms_by_cpu_time"] = before["train_step_32000_ms"] * cpu_ratio
+            out["train_step_speedup_over_peer_by_cpu_time"] = (peer["train_step_32000_ms"] /
+                                                               out["train_step_32000_ms_by_cpu_time"])
         mem = step["after"]["peak_rss_gb"] / step["before"]["peak_rss_gb"]
         out["train_step_32000_peak_gb"] = before["train_step_32000_peak_gb"] * mem
-    fwd = summary.get("forward/auto")
-    if fwd:
+    if both(fwd):
         for n in ("32000", "1000000"):
             if n in fwd["after"]["median_ms"]:
                 ratio = fwd["after"]["median_ms"][n] / fwd["before"]["median_ms"][n]
                 out[f"forward_{n}_ms"] = before[f"forward_{n}_ms"] * ratio
                 out[f"forward_{n}_speedup_over_peer"] = peer[f"forward_{n}_ms"] / out[f"forward_{n}_ms"]
+                cpu_b, cpu_a = fwd["before"].get("cpu_median_ms", {}), fwd["after"].get("cpu_median_ms", {})
+                if n in cpu_b and n in cpu_a:
+                    out[f"forward_{n}_speedup_over_peer_by_cpu_time"] = peer[f"forward_{n}_ms"] / (
+                        before[f"forward_{n}_ms"] * cpu_a[n] / cpu_b[n])
     return out
 
 
 def study(config: str, overrides: Sequence[str], train_points: int, forward_points: Sequence[int],
           modes: Sequence[str], jobs: Sequence[str], settings: Sequence[str], cap: str, steps: int, warmup: int,
           runs: int, stages: bool, stage_runs: int, cores: int, timeout_s: float | None = None,
-          log_fn: Callable[[str], None] = print, save: Callable[[dict], None] = lambda result: None) -> dict:
-    """Every (job, mode, setting) child once, settings of one (job, mode) next to each other; the JSON of
-    tools/benchmark_cpu_step.py (`save` gets it after every child). A failed child is recorded ({"error": ...})."""
-    for name, given, known in (("modes", modes, MODES), ("jobs", jobs, JOBS), ("settings", settings, SETTINGS)):
+          log_fn: Callable[[str], None] = print, save: Callable[[dict], None] = lambda result: None,
+          rounds: int = 1) -> dict:
+    """Every (job, mode, setting) child once per round, `rounds` rounds, settings of one (job, mode) next to each
+    other, so that a change of load hits them alike; the JSON of tools/benchmark_cpu_step.py (`save` gets it after
+    every child). A variant's first reading is its entry, later rounds' are in its "later_rounds"; the summary takes
+    the median over the rounds. A failed child is recorded ({"error": ...})."""
+    for name, given, known in (("modes", modes, MODES), ("jobs", jobs, JOBS), ("settings", settings, ALL_SETTINGS)):
         if not set(given) <= set(known):
             raise ValueError(f"{name}={list(given)}: of {', '.join(known)}")
-    if cap not in cpu.EMULATIONS:
-        raise ValueError(f"cap={cap!r}: one of {', '.join(cpu.EMULATIONS)}")
+    if cap not in cpu.EMULATIONS and cap != NO_CAP:
+        raise ValueError(f"cap={cap!r}: one of {', '.join(cpu.EMULATIONS)}, {NO_CAP}")
     config = os.path.abspath(config) if config else ""
+    figures = peer_figures()
     result = {"how": "", "cpu": cpu.describe(), "cap": cap, "load_average_at_start": bench.load_average(),
               "config": config and os.path.relpath(config, children.ROOT), "overrides": list(overrides),
               "train_points": train_points, "forward_points": list(forward_points), "steps": steps,
-              "warmup": warmup, "runs": runs, "cores": cores, "peer": PEER, "targets": TARGETS, "variants": {},
-              "summary": {}}
+              "warmup": warmup, "runs": runs, "stage_runs": stage_runs, "rounds": rounds, "cores": cores,
+              "peer": {k: v for k, v in figures.items() if k != "targets"}, "targets": figures["targets"],
+              "variants": {}, "summary": {}}
     result["how"] = (f"each variant a fresh process pinned to {cores} cores with TensorFlow's pools of {cores} "
                      f"threads; training: median of {steps} steps after {warmup} warm-up steps, peak = the "
                      f"process's VmHWM; forward: median of {runs} calls after {warmup} warm-up calls per point count, "
-                     "round robin in one process; every figure under the caps of ff3d_tf.cpu.EMULATIONS"
-                     f"[{cap!r}] (the CPU named in each variant's cpu.limits)")
-    for job in jobs:
-        for mode in modes:
-            key = f"{job}/{mode}"
-            result["variants"][key] = {}
-            for setting in settings:
-                env = variant_environment(setting, job, cap)
-                resolved = resolved_mode(setting, mode, job)
-                point_programs = "one" if setting == "before" else "per_cloud"
-                kwargs = {"config": config, "overrides": list(overrides), "mode": resolved, "warmup": warmup,
-                          "point_programs": point_programs}
-                if job == "train":
-                    fn = f"{MODULE}:train_child"
-                    kwargs.update(points=train_points, steps=steps, stages=stages, stage_runs=stage_runs)
-                else:
-                    fn = f"{MODULE}:forward_child"
-                    kwargs.update(points=list(forward_points), runs=runs)
-                environment = {k: v for k, v in env.items()}
-                removed = {k: os.environ.pop(k) for k in list(os.environ) if k not in environment}
-                try:
-                    reading = children.run_child(fn, kwargs, cores=cores, env=environment, timeout_s=timeout_s,
-                                                 what=f"{key} {setting}", on_error="record")
-                finally:
-                    os.environ.update(removed)
-                reading.update({"setting": setting, "requested_mode": mode,
-                                "environment": {k: environment.get(k) for k in sorted(
-                                    {k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS))}})
-                if job == "train" and "stages" in reading and "step_median_ms" in reading:
-                    reading["stage_summary"] = stage_summary(reading["stages"], reading["step_median_ms"])
-                result["variants"][key][setting] = reading
-                log_fn(f"{key} {setting}: " + _brief(reading))
-                result["summary"] = summarize(result["variants"])
-                result["projection_zen3"] = projection(result["summary"])
-                result["load_average_at_end"] = bench.load_average()
-                save(result)
+                     "round robin in one process; every figure under the caps of " +
+                     (f"ff3d_tf.cpu.EMULATIONS[{cap!r}]" if cap != NO_CAP else "none (the CPU's own kernels)") +
+                     " (the CPU and its limits named in each variant's cpu)")
+    # The issue's Zen 3 figures are of the paper config at 32,000 and 1,000,000 points: projected only for that.
+    paper = (result["config"] == PAPER_CONFIG and not overrides and train_points == 32000 and cap == "zen3")
+    measured = {}  # (job, setting, resolved mode) -> the key of the variant that measured it
+    plan = [(job, mode, setting) for job in jobs for mode in modes for setting in settings]
+    for round_, (job, mode, setting) in ((r, v) for r in range(rounds) for v in plan):
+        key = f"{job}/{mode}"
+        result["variants"].setdefault(key, {})
+        environment = variant_environment(setting, job, cap)
+        resolved = resolved_mode(setting, mode, job, environment)
+        if measured.get((job, setting, resolved), key) != key:  # "auto" and the mode it resolves to: one
+            result["variants"][key][setting] = {"same_as": measured[(job, setting, resolved)],
+                                                "mode": resolved}
+            continue
+        point_programs = "one" if setting == "before" else "per_cloud"
+        kwargs = {"config": config, "overrides": list(overrides), "mode": resolved, "warmup": warmup,
+                  "point_programs": point_programs}
+        if job == "train":
+            fn = f"{MODULE}:train_child"
+            kwargs.update(points=train_points, steps=steps, stages=stages, stage_runs=stage_runs)
+        else:
+            fn = f"{MODULE}:forward_child"
+            kwargs.update(points=list(forward_points), runs=runs)
+        removed = {k: os.environ.pop(k) for k in list(os.environ) if k not in environment}
+        try:
+            reading = children.run_child(fn, kwargs, cores=cores, env=dict(environment),
+                                         timeout_s=timeout_s, what=f"{key} {setting}", on_error="record")
+        finally:
+            os.environ.update(removed)
+        knobs = sorted({k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS))
+        reading.update({"setting": setting, "requested_mode": mode,
+                        "environment": {k: environment.get(k) for k in knobs}})
+        if job == "train" and "stages" in reading and "step_median_ms" in reading:
+            reading["stage_summary"] = stage_summary(reading["stages"], reading["step_median_ms"])
+        if round_ == 0:
+            result["variants"][key][setting] = reading
+        else:
+            result["variants"][key][setting].setdefault("later_rounds", []).append(reading)
+        measured[(job, setting, resolved)] = key
+        log_fn(f"round {round_ + 1} {key} {setting}: " + _brief(reading))
+        result["summary"] = summarize(result["variants"])
+        if paper:
+            result["projection_zen3"] = projection(result["summary"], figures)
+        result["load_average_at_end"] = bench.load_average()
+        save(result)
     return result
 
 
@@ -361,24 +412,50 @@ def summarize(variants: Mapping) -> dict:
     for key, by_setting in variants.items():
         row = {}
         for setting, r in by_setting.items():
-            if "error" in r:
+            if "same_as" in r:
+                r = {**variants[r["same_as"]][setting], "same_as": r["same_as"]}
+            readings = [x for x in [r] + list(r.get("later_rounds", [])) if "error" not in x]
+            if not readings:
                 row[setting] = {"error": True}
-            elif "step_median_ms" in r:
-                row[setting] = {"mode": r["mode"], "onednn_enabled": r["onednn_enabled"],
-                                "step_median_ms": r["step_median_ms"], "peak_rss_gb": r["peak_rss_gb"],
-                                **({"stages": r["stage_summary"]} if "stage_summary" in r else {})}
+            elif "step_median_ms" in r or "step_median_ms" in readings[0]:
+                first = readings[0]
+                row[setting] = {"mode": first["mode"], "onednn_enabled": first["onednn_enabled"],
+                                "rounds": len(readings),
+                                "step_median_ms": bench.middle([x["step_median_ms"] for x in readings]),
+                                "peak_rss_gb": bench.middle([x["peak_rss_gb"] for x in readings]),
+                                "step_cpu_median_ms": bench.middle([bench.middle(x["step_cpu_ms"]) for x in readings])
+                                if all(x.get("step_cpu_ms") for x in readings) else None,
+                                **({"stages": first["stage_summary"]} if "stage_summary" in first else {})}
             else:
-                med = r["median_ms"]
+                first = readings[0]
+                med = {n: bench.middle([x["median_ms"][n] for x in readings]) for n in first["median_ms"]}
+                cpu_med = ({n: bench.middle([x["cpu_median_ms"][n] for x in readings]) for n in first["cpu_median_ms"]}
+                           if all("cpu_median_ms" in x for x in readings) else {})
+                r = first
                 row[setting] = {"mode": r["mode"], "onednn_enabled": r["onednn_enabled"], "median_ms": med,
-                                "peak_rss_gb": r["peak_rss_gb"]}
+                                "cpu_median_ms": cpu_med, "peak_rss_gb": r["peak_rss_gb"]}
                 if "32000" in med and "1000000" in med:
                     row[setting]["t1m_over_t32k"] = med["1000000"] / med["32000"]
+                if "32000" in cpu_med and "1000000" in cpu_med:
+                    row[setting]["cpu_t1m_over_t32k"] = cpu_med["1000000"] / cpu_med["32000"]
         if all(s in row and "error" not in row[s] for s in SETTINGS):
             b, a = row["before"], row["after"]
             if "step_median_ms" in b:
                 row["before_over_after"] = {"step": b["step_median_ms"] / a["step_median_ms"],
                                             "peak": b["peak_rss_gb"] / a["peak_rss_gb"]}
+                if b.get("step_cpu_median_ms") and a.get("step_cpu_median_ms"):
+                    row["before_over_after"]["step_cpu"] = b["step_cpu_median_ms"] / a["step_cpu_median_ms"]
             else:
                 row["before_over_after"] = {n: b["median_ms"][n] / a["median_ms"][n] for n in a["median_ms"]}
         out[key] = row
+    return out
+
+
+def resummarize(result: dict) -> dict:
+    """`result` (a study's JSON) with "summary" and "projection_zen3" computed again from its variants: what a newer
+    summary adds, without measuring again."""
+    out = dict(result, summary=summarize(result["variants"]))
+    if "projection_zen3" in result:
+        figures = {**result["peer"], "targets": result["targets"]}
+        out["projection_zen3"] = projection(out["summary"], figures)
     return out

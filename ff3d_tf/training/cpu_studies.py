@@ -238,7 +238,7 @@ def memory_child(kind: str, config: str, overrides: list, points: int, steps: in
         importlib.import_module(module)
     from ff3d_tf import internals
     from ff3d_tf.model import compile as compile_lib
-    mode = compile_lib.resolve_compile_mode(cfg.model.compile)
+    mode = compile_lib.resolve_compile_mode(cfg.model.compile, job="train" if kind == "train" else "inference")
     rng = np.random.default_rng(0)
     out = {"compile_mode": mode, "onednn_enabled": internals.onednn_enabled(), "tensorflow_imported": snapshot()}
     if kind == "train":

@@ -104,7 +104,7 @@ class Trainer:
         self._steps_done = 0  # the last step this process finished (the watchdog's message)
         keras.utils.set_random_seed(cfg.train.seed)  # same initial weights for the same seed (reproducible runs)
         with self.strategy.scope():
-            self.model = build_model(cfg)
+            self.model = build_model(cfg, job="train")  # model.compile=auto chooses for training
             self.optimizer = make_optimizer(cfg)
             self.optimizer.build(self.model.trainable_variables)
             self.global_step = tf.Variable(0, dtype=tf.int64, trainable=False, name="step")

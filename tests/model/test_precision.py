@@ -108,8 +108,9 @@ def test_build_model_resolves_auto_and_logs_it(tiny_config, tmp_path, monkeypatc
         caplog.clear()
         with caplog.at_level(logging.INFO, logger=logger):
             return build_model(*args)
-    model = built(AMD, _FLAGS_AVX512_BF16, cfg)  # tests run on CPU: auto -> hybrid
+    model = built(AMD, _FLAGS_AVX512_BF16, cfg)  # tests run on CPU: auto -> hybrid for inference
     assert model.compile_mode == "hybrid" and model.conv_dtype == "bfloat16"
+    assert "model.compile=auto -> hybrid for inference (" in caplog.text
     assert "model.mixed_precision=auto -> bfloat16 (AMD CPU has avx512_bf16;" in caplog.text
     assert built(INTEL, _FLAGS_AMX, cfg, "none").conv_dtype == "bfloat16"
     assert "model.mixed_precision=auto -> bfloat16 (CPU has amx_bf16;" in caplog.text
@@ -119,8 +120,13 @@ def test_build_model_resolves_auto_and_logs_it(tiny_config, tmp_path, monkeypatc
     assert "model.mixed_precision=auto -> float32 (GenuineIntel CPU has avx512_bf16 but no amx_bf16" in caplog.text
     assert built(AMD, _FLAGS_PLAIN, cfg).conv_dtype == "float32"
     assert "model.mixed_precision=auto -> float32 (CPU has none of avx512_bf16, amx_bf16;" in caplog.text
-    # Explicit: the flags do not matter.
-    assert built(AMD, _FLAGS_PLAIN, replace_config(cfg, {"model.mixed_precision": True})).conv_dtype == "bfloat16"
+    # Explicit: the flags do not matter, but bfloat16 never meets oneDNN without its bfloat16 convolutions.
+    explicit = replace_config(cfg, {"model.mixed_precision": True})
+    monkeypatch.setattr("ff3d_tf.internals.onednn_enabled", lambda: True)
+    with pytest.raises(ValueError, match="TF_ENABLE_ONEDNN_OPTS=0"):
+        built(AMD, _FLAGS_PLAIN, explicit)
+    monkeypatch.setattr("ff3d_tf.internals.onednn_enabled", lambda: False)
+    assert built(AMD, _FLAGS_PLAIN, explicit).conv_dtype == "bfloat16"
     assert "model.mixed_precision=true -> bfloat16 (as set;" in caplog.text
     assert built(AMD, _FLAGS_AMX, tiny_config).conv_dtype == "float32"
     assert "model.mixed_precision=false -> float32 (as set; everything in float32)" in caplog.text

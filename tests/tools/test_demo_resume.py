@@ -1,4 +1,5 @@
 """`make demo` interrupted at two different stages (Ctrl-C in training, SIGKILL in the export) resumes and finishes."""
+import json
 import os
 import signal
 import subprocess
@@ -74,6 +75,12 @@ def test_demo_interrupted_in_training_and_in_export_resumes_and_finishes(tmp_pat
     assert (out / "saved_model" / "saved_model.pb").exists() and not (out / "saved_model.partial").exists()
     assert (out / "predictions" / "frame_0000_bev.png").stat().st_size > 1000
     assert tf.train.latest_checkpoint(str(out / "model" / "checkpoints")).endswith(f"ckpt-{NUM_STEPS}")
+    with open(out / "demo_summary.json") as f:
+        summary = json.load(f)
+    assert len(summary["stage_seconds"]) == 7 and summary["skipped"] == ["generate train", "generate val",
+                                                                           "dataset statistics", "train", "evaluate"]
+    assert summary["cpu"]["cpu_count"] >= 1 and summary["seconds"] >= summary["stage_seconds"]["export"] > 0
+    assert summary["moving_over_zero_flow"] == summary["moving_mean_l2_mps"] / summary["zero_flow_moving_mean_l2_mps"]
     # 4. A fourth run has nothing left to do.
     code, text, seconds_4 = _demo(out)
     assert code == 0 and text.count(": complete (") == 7, text[-3000:]
