@@ -3,7 +3,8 @@
 python tools/av2_submission.py --leaderboard v1|v2|v3 --split test --masks test-masks.zip --checkpoint M
     --data_dir AV2_RECORDS --out submission.zip [--format_json test_submission_format.json] [--config C] [--set ...]
 AV2_RECORDS: `tools/write_pair_records.py --source av2 --input <split> --out_dir AV2_RECORDS` (each sweep paired with
-the next one). --masks: Argoverse's official `{val,test}-masks.zip` (`<log_id>/<timestamp_ns>.feather`, one boolean
+the next one; the test split's logs have no annotations: add --no_labels, which keeps every point in the same
+order). --masks: Argoverse's official `{val,test}-masks.zip` (`<log_id>/<timestamp_ns>.feather`, one boolean
 column over every point of the sweep), from s3://argoverse/tasks/3d_scene_flow/zips/: it chooses the sweeps (v1, v3)
 and v1's rows; a sweep of it without a record, or with another point count, stops the tool naming both. Without it a
 test split is refused; a val split falls back to av2-api's rule (every 5th pair; |x|, |y| <= 50 m, not ground), for
@@ -25,6 +26,7 @@ import _common
 
 import numpy as np
 
+from ff3d_tf.data import pair_records
 from ff3d_tf.data.av2 import av2_submission
 from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.training.evaluation import write_av2_submission
@@ -58,12 +60,17 @@ def main():
     cfg = _common.load(args)
     from ff3d_tf.config import replace_config
     cfg = replace_config(cfg, {"data.source": "pair_records"})
+    files = list_segment_files(args.data_dir)
     if args.ground_truth:
+        manifest = pair_records.manifest_of_files(files)
+        if not manifest.human_labels:
+            raise ValueError(f"{args.data_dir}: --ground_truth submits the records' labels, but these records hold "
+                             "none (written with --no_labels, e.g. the test split): give --checkpoint")
         predictor = _LabelsAsPrediction()
     else:
         from ff3d_tf.inference.predictor import load_predictor
         predictor = load_predictor(cfg, args.checkpoint)
-    summary = write_av2_submission(cfg, list_segment_files(args.data_dir), predictor, args.out, args.leaderboard,
+    summary = write_av2_submission(cfg, files, predictor, args.out, args.leaderboard,
                                    args.split, masks=args.masks, format_json=args.format_json,
                                    max_pairs=args.max_pairs, supervised=not args.self_supervised,
                                    log_fn=lambda s: print(s, flush=True))

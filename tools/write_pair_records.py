@@ -2,6 +2,7 @@
 
 python tools/write_pair_records.py --source wod --input 'segments/*.tfrecord' --out_dir records/ [--config C]
 python tools/write_pair_records.py --source av2 --input av2/sensor/train --out_dir records/train
+python tools/write_pair_records.py --source av2 --input av2/sensor/test --out_dir records/test --no_labels
 python tools/write_pair_records.py --source files --input 'scans/*' --out_dir records/ [--class_map M.yaml] \
     [--box_margin_m 0] [--sweep_period_s 0.1] [--intensity_scale auto] [--no_labels]
 Then train or evaluate with `--set data.source=pair_records` and the records directory as the data directory.
@@ -9,7 +10,9 @@ One Beam element per WOD segment, Argoverse 2 log or sequence of your own sweeps
 rerun resumes. Your own sweeps (--source files): one or many sweeps directories as `tools/predict.py --sweeps_dir`
 reads them, with poses (required), an optional timestamps.txt (s, one a sweep; else one sweep every --sweep_period_s)
 and a box table boxes.csv|boxes.feather labelling the points by the paper's box rule (ff3d_tf/labels/own_records.py,
-docs/datasets.md); --no_labels writes them unlabelled, for tools/pseudo_label.py.
+docs/datasets.md); --no_labels writes them unlabelled, for tools/pseudo_label.py. Argoverse 2 logs without
+annotations.feather (the test split) need --no_labels: the same points and pairs, the map's ground, no labels (for
+tools/av2_submission.py --split test).
 `--precision compact` stores point features and flows as float16 (coordinates stay float32); `--compression zlib`
 trades read CPU for disk. Any other arguments are Beam options (e.g. --direct_num_workers=2
 --direct_running_mode=multi_processing, or a cloud runner's).
@@ -35,8 +38,9 @@ def main():
     p.add_argument("--out_dir", required=True)
     p.add_argument("--precision", choices=pair_records.PRECISIONS, default="exact")
     p.add_argument("--compression", choices=pair_records.COMPRESSIONS, default="none")
-    p.add_argument("--no_labels", action="store_true", help="WOD segments without scene-flow labels, or your "
-                   "sweeps without their boxes (raw LiDAR; for tools/pseudo_label.py)")
+    p.add_argument("--no_labels", action="store_true", help="WOD segments without scene-flow labels, Argoverse 2 "
+                   "logs without annotations.feather (the test split), or your sweeps without their boxes (raw "
+                   "LiDAR; for tools/pseudo_label.py or, AV2, a test submission)")
     p.add_argument("--class_map", help="files: YAML mapping your box classes to vehicle, pedestrian, cyclist, sign, "
                                        "background or null (dropped)")
     p.add_argument("--box_margin_m", type=float, default=0.0, help="files: added to each box's length and width")
@@ -60,8 +64,10 @@ def main():
         elif args.source == "av2":
             from ff3d_tf.labels import av2
             inputs = av2.list_logs(args.input)
+            for log_dir in inputs:  # a log without annotations fails before any work, naming it
+                av2.check_log(log_dir, not args.no_labels)
             run = lambda: av2.run_records_job(inputs, args.out_dir, cfg, args.precision,  # noqa: E731
-                                              args.compression, beam_args, written_by)
+                                              args.compression, beam_args, written_by, labels=not args.no_labels)
         else:
             from ff3d_tf.data.files import box_table, sequences
             from ff3d_tf.labels import own_records

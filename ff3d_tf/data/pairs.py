@@ -215,8 +215,9 @@ def _pairs_of_records(path, cfg: ExperimentConfig, manifest, extras: tuple, meta
         to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 
-def check_records_match(manifest, cfg: ExperimentConfig, where: str) -> None:
-    """ConfigError unless pair records written as `manifest` can serve `cfg` (same lidars and returns, labels)."""
+def check_records_match(manifest, cfg: ExperimentConfig, where: str, inference_only: bool = False) -> None:
+    """ConfigError unless pair records written as `manifest` can serve `cfg` (same lidars and returns, labels;
+    `inference_only`: a predictor's input, for which unlabelled records serve)."""
     from ff3d_tf.config import ConfigError
     d = cfg.data
     if manifest.source == "wod" and (tuple(sorted(manifest.laser_names)), tuple(sorted(manifest.returns))) != \
@@ -224,7 +225,7 @@ def check_records_match(manifest, cfg: ExperimentConfig, where: str) -> None:
         raise ConfigError(f"{where}: the pair records hold lasers {manifest.laser_names}, returns "
                           f"{manifest.returns}; the config asks for data.laser_names={d.laser_names}, "
                           f"data.returns={d.returns}: write records with that selection, or change the config")
-    if d.labels == "human" and not manifest.human_labels:
+    if d.labels == "human" and not manifest.human_labels and not inference_only:
         raise ConfigError(f"{where}: these pair records hold no human flow labels (raw LiDAR): train on their "
                           "pseudo-labels (tools/pseudo_label.py, data.labels=pseudo); evaluation needs labelled data")
     if d.labels == "pseudo" and schema.PSEUDO_FLOW_KEY not in manifest.extras:
@@ -246,7 +247,7 @@ def pair_dataset(files: list[str], cfg: ExperimentConfig, *, inference_only: boo
     files_ds = tf.data.Dataset.from_tensor_slices(list(files))
     if cfg.data.source == "pair_records":
         manifest = pair_records.manifest_of_files(list(files))
-        check_records_match(manifest, cfg, os.path.dirname(files[0]))
+        check_records_match(manifest, cfg, os.path.dirname(files[0]), inference_only)
         fn = lambda f: _pairs_of_records(f, cfg, manifest, tuple(extras), metadata, skip, training_labels)  # noqa
     else:
         if extras:

@@ -10,6 +10,12 @@ masks of both clouds (`is_ground_t0`, `is_ground_tm1`: the log's ground raster),
 point (`category_t0`, the `classes` values of Argoverse's own flow labels; 0 = in no cuboid) and its cuboid
 (`instance_id_t0`: the index of the cuboid among the sweep's, the box that labelled the point; -1 = in no cuboid), for
 DeltaFlow's class and instance terms (`ff3d_tf.model.losses`). The last sweep of a log has no partner.
+
+Logs without `annotations.feather` (the test split) are written unlabelled (`labels=False`, `--no_labels`): the same
+points in the same order and the same pairs as labelled records (so the official masks match), the map's ground masks
+(`AV2_UNLABELLED_EXTRAS`), flow 0 and class -1 everywhere, and a manifest saying `human_labels: false` (as
+`ff3d_tf.labels.own_records` does): input for a submission (`tools/av2_submission.py`) or for the pseudo-label job.
+A labelled job over a log without annotations stops before any work, naming it (`NO_ANNOTATIONS`).
 """
 from __future__ import annotations
 
@@ -30,6 +36,10 @@ from ff3d_tf.labels.box_flow import bootstrap_flow
 
 _LOG = logging.getLogger(__name__)
 AV2_EXTRAS = schema.AV2_RECORD_EXTRAS
+AV2_UNLABELLED_EXTRAS = ("is_ground_t0", "is_ground_tm1")  # the map's ground masks: no cuboid is read
+ANNOTATIONS_NAME = "annotations.feather"
+NO_ANNOTATIONS = ("no {name}: labelled records need the log's cuboids. Logs of the test split have none: write them "
+                  "with --no_labels (unlabelled records, for a test submission or tools/pseudo_label.py)")
 
 
 def labelled_pair(log_dir: str, index: int = 1) -> tuple[dict, dict]:
@@ -67,9 +77,18 @@ def list_logs(path: str) -> list[str]:
     return logs
 
 
-def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig) -> dict:
+def check_log(log_dir: str, labels: bool = True) -> None:
+    """Argoverse2FormatError naming `log_dir`'s annotations file when `labels` and the log has none
+    (`NO_ANNOTATIONS`)."""
+    path = os.path.join(log_dir, ANNOTATIONS_NAME)
+    if labels and not os.path.isfile(path):
+        raise argoverse2.Argoverse2FormatError(path, "file", NO_ANNOTATIONS.format(name=ANNOTATIONS_NAME))
+
+
+def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig, labels: bool = True) -> dict:
     """The pair record contents (NumPy) of sweep `index` (t0) and sweep `index + 1` (its partner), labelled by the
-    cuboids with Argoverse's margin, with `AV2_EXTRAS` and `pair_records.METADATA_KEYS`; every point kept."""
+    cuboids with Argoverse's margin, with `AV2_EXTRAS` and `pair_records.METADATA_KEYS`; every point kept. Without
+    `labels`: the same points and pair, flow 0 and class -1, `AV2_UNLABELLED_EXTRAS` only (no cuboid is read)."""
     stamps = argoverse2.sweep_timestamps(log_dir)
     if not 0 <= index < len(stamps) - 1:
         raise argoverse2.Argoverse2FormatError(os.path.join(log_dir, "sensors", "lidar"), "file",
@@ -80,19 +99,22 @@ def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig) -> dict:
         if len(f["points_xyz"]) == 0:
             raise argoverse2.Argoverse2FormatError(os.path.join(log_dir, "sensors", "lidar", f"{ts}.feather"),
                                                    "x", "empty sweep: no points")
-    boxes_t0 = argoverse2.cuboids(log_dir, ts_t0)
-    dt_s = (ts_next - ts_t0) * 1e-9
-    flow, cls, owner = bootstrap_flow(f_t0["points_xyz"], boxes_t0, argoverse2.cuboids(log_dir, ts_next),
-                                      f_t0["pose"], f_next["pose"], dt_s, enlarge_m=argoverse2.CUBOID_MARGIN_M,
-                                      with_instances=True)
-    f_t0["flow_mps"], f_t0["class_id"] = flow, cls
+    if labels:
+        check_log(log_dir)
+        boxes_t0 = argoverse2.cuboids(log_dir, ts_t0)
+        dt_s = (ts_next - ts_t0) * 1e-9
+        flow, cls, owner = bootstrap_flow(f_t0["points_xyz"], boxes_t0, argoverse2.cuboids(log_dir, ts_next),
+                                          f_t0["pose"], f_next["pose"], dt_s, enlarge_m=argoverse2.CUBOID_MARGIN_M,
+                                          with_instances=True)
+        f_t0["flow_mps"], f_t0["class_id"] = flow, cls
     ex = make_pair({k: tf.constant(v) for k, v in f_next.items()}, {k: tf.constant(v) for k, v in f_t0.items()},
                    pairs.raw_pair_config(cfg))
     ex = {k: v.numpy() for k, v in ex.items()}
-    categories = np.array([argoverse2.scene_flow_category_index(str(c)) for c in boxes_t0["category"]] + [0],
-                          np.int32)
-    ex["category_t0"] = categories[owner]  # owner -1 (no cuboid) reads the appended 0
-    ex["instance_id_t0"] = owner  # the cuboid (track) of each point, by its index among the sweep's cuboids
+    if labels:
+        categories = np.array([argoverse2.scene_flow_category_index(str(c)) for c in boxes_t0["category"]] + [0],
+                              np.int32)
+        ex["category_t0"] = categories[owner]  # owner -1 (no cuboid) reads the appended 0
+        ex["instance_id_t0"] = owner  # the cuboid (track) of each point, by its index among the sweep's cuboids
     ex["is_ground_t0"] = argoverse2.is_ground(log_dir, f_t0["points_xyz"], f_t0["pose"])
     ex["is_ground_tm1"] = argoverse2.is_ground(log_dir, f_next["points_xyz"], f_next["pose"])  # the partner's
     ex[pair_records.TIMESTAMP_KEY], ex[pair_records.PARTNER_TIMESTAMP_KEY] = ts_t0, ts_next
@@ -101,15 +123,19 @@ def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig) -> dict:
 
 
 def records_manifest(cfg: ExperimentConfig, precision: str = "exact", compression: str = "none",
-                     written_by: str = "") -> pair_records.Manifest:
+                     written_by: str = "", labels: bool = True) -> pair_records.Manifest:
+    """Both lidars, first returns, paired with the next sweep; `AV2_EXTRAS` and `human_labels` when labelled, else
+    `AV2_UNLABELLED_EXTRAS` and `human_labels: false`."""
     return pair_records.Manifest(source="av2", laser_names=(1, 2), returns=(1,), max_frame_gap_s=cfg.data.max_frame_gap_s,
-                                 precision=precision, compression=compression, extras=AV2_EXTRAS, partner="next",
-                                 written_by=written_by).validate("<manifest>")
+                                 precision=precision, compression=compression,
+                                 extras=AV2_EXTRAS if labels else AV2_UNLABELLED_EXTRAS, human_labels=labels,
+                                 partner="next", written_by=written_by).validate("<manifest>")
 
 
 def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifest: pair_records.Manifest) -> dict:
     """Pair records of one log (`challenge_pair` of every sweep but the last) into `<out_dir>/<log_id>.pairs.tfrecord`
-    (atomically; an existing output is kept: resumable). Returns counts."""
+    (atomically; an existing output is kept: resumable), labelled as `manifest.human_labels` says. Returns counts."""
+    labels = manifest.human_labels
     log_id = os.path.basename(os.path.normpath(log_dir))
     out_path = os.path.join(out_dir, pair_records.records_file_name(log_id))
     if tf.io.gfile.exists(out_path):
@@ -123,7 +149,7 @@ def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifes
     def records():
         for index in range(num_sweeps - 1):
             try:
-                ex = challenge_pair(log_dir, index, cfg)
+                ex = challenge_pair(log_dir, index, cfg, labels)
             except argoverse2.Argoverse2FormatError as err:
                 if not cfg.data.skip_bad_records:
                     raise
@@ -135,7 +161,7 @@ def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifes
                 continue
             counts["pairs"] += 1
             counts["points_t0"] += int(ex["num_points_t0"])
-            yield pair_records.serialize_pair(ex, manifest.precision, AV2_EXTRAS)
+            yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras)
 
     pair_records.write_records_atomically(out_path, records(), manifest.compression)
     counts["bytes"] = tf.io.gfile.stat(out_path).length
@@ -144,9 +170,13 @@ def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifes
 
 
 def run_records_job(logs: list[str], out_dir: str, cfg: ExperimentConfig, precision: str = "exact",
-                    compression: str = "none", beam_args: list[str] | None = None, written_by: str = "") -> dict:
-    """Pair records of every log into `out_dir` (a Beam job, one element per log; `ff3d_tf.data.beam_job`)."""
-    manifest = records_manifest(cfg, precision, compression, written_by)
+                    compression: str = "none", beam_args: list[str] | None = None, written_by: str = "",
+                    labels: bool = True) -> dict:
+    """Pair records of every log into `out_dir` (a Beam job, one element per log; `ff3d_tf.data.beam_job`); without
+    `labels`, unlabelled records (module docstring). A labelled job checks every log's annotations before any work."""
+    for log_dir in logs:
+        check_log(log_dir, labels)
+    manifest = records_manifest(cfg, precision, compression, written_by, labels)
     pair_records.write_manifest(out_dir, manifest)
     return beam_job.run_per_input(list(logs), functools.partial(write_log_records, out_dir=out_dir, cfg=cfg,
                                                                 manifest=manifest),

@@ -132,21 +132,24 @@ def _sweep_name(log_id, timestamp_ns):
 
 
 def av2_challenge_examples(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_pairs: int = 0,
-                           log_fn=print, sweeps: set[tuple[str, int]] | None = None):
+                           log_fn=print, sweeps: set[tuple[str, int]] | None = None, inference_only: bool = False):
     """(example, predicted m/s, prediction valid, 35 m eval mask) per pair of Argoverse 2 challenge records, in order;
     with `sweeps` ({(log_id, timestamp_ns)}) only those pairs (the others are never given to the predictor).
 
     Every point is kept (no grid crop: the challenge scores every eval-mask point; a point the model cannot see gets
     flow 0). Raises ValueError unless `files` are Argoverse 2 records paired with the next sweep
-    (`tools/write_pair_records.py --source av2`).
+    (`tools/write_pair_records.py --source av2`). `inference_only` (a submission): unlabelled records
+    (`--no_labels`, the test split) serve too; their examples hold no `category_t0` and flow 0.
     """
     _check_av2_records(cfg, files)
+    labelled = pair_records.manifest_of_files(list(files)).human_labels
     if sweeps is not None and not sweeps:
         return
     cfg = replace_config(cfg, {"data.crop_to_grid": False, "data.labels": "human"})
     total = count_pairs(files) if sweeps is None else len(sweeps)
     total = min(total, max_pairs) if max_pairs else total
-    ds = pairs.pair_dataset(files, cfg, extras=schema.AV2_EVAL_KEYS, metadata=True)
+    ds = pairs.pair_dataset(files, cfg, extras=schema.AV2_EVAL_KEYS if labelled else ("is_ground_t0",),
+                            metadata=True, inference_only=inference_only)
     if sweeps is not None:
         names = sorted(_sweep_name(*k) for k in sweeps)
         table = tf.lookup.StaticHashTable(tf.lookup.KeyValueTensorInitializer(
@@ -287,7 +290,7 @@ def write_av2_submission(cfg: ExperimentConfig, files: list[str], predictor: Pre
                f"written under {parts}")
         t0 = time.time()
         for ex, flow_pred, _, _ in av2_challenge_examples(cfg, files, _Skipping(predictor, set(kept)), 0, log_fn,
-                                                          set(todo) | set(kept)):
+                                                          set(todo) | set(kept), inference_only=True):
             key = _sweep_key(ex)
             points = ex["points_xyz_t0"]
             if key in kept:  # av2-api's rule: the interrupted run's file must have the rule's rows

@@ -122,3 +122,42 @@ def test_a_short_training_on_synthetic_av2_logs_beats_zero_flow(tmp_path):
     r = json.loads((tmp_path / "eval" / "metrics_av2.json").read_text())
     assert r["model"]["three_way/fg_dynamic_epe_m"] < 0.9 * r["zero_flow"]["three_way/fg_dynamic_epe_m"]
     assert r["paper_model"]["vehicle/moving/mean_l2_mps"] < 0.9 * r["paper_zero_flow"]["vehicle/moving/mean_l2_mps"]
+
+
+@pytest.mark.slow  # trains one step, then submits: ~45 s
+def test_a_test_submission_of_a_log_without_annotations(tiny_segment, tiny_config, tmp_path):
+    """A synthetic test log (no annotations.feather) -> unlabelled records -> tools/av2_submission.py --split test
+    --masks with a checkpoint: the masks' sweeps and rows, checked against the format JSON, read back."""
+    from ff3d_tf.data import pair_records
+    from ff3d_tf.data.synthetic import av2 as synthetic_av2
+    from ff3d_tf.labels import av2
+    log_id = synthetic_av2.log_id_for(6)
+    log = synthetic_av2.write_synthetic_log(str(tmp_path / "test"), log_id, 7, 6, points_per_sweep=500)
+    for name in ("annotations.feather", "flow_labels.feather"):
+        os.remove(os.path.join(log, name))
+    records = str(tmp_path / "records")
+    av2.run_records_job([log], records, tiny_config, labels=False)
+    assert not pair_records.read_manifest(records).human_labels
+    stamps = argoverse2.sweep_timestamps(log)
+    rng = np.random.default_rng(4)
+    masks = {ts: rng.random(len(argoverse2.read_sweep(log, ts)["points_xyz"])) < 0.5 for ts in stamps[:-1][::5]}
+    with zipfile.ZipFile(tmp_path / "test-masks.zip", "w") as zf:
+        for ts, m in masks.items():
+            sink = pa.BufferOutputStream()
+            feather.write_feather(pa.table({"mask": pa.array(m)}), sink)
+            zf.writestr(f"{log_id}/{ts}.feather", sink.getvalue().to_pybytes())
+    fmt = tmp_path / "test_submission_format.json"
+    fmt.write_text(json.dumps({f"{log_id}/{ts}.feather": int(m.sum()) for ts, m in masks.items()}))
+    model_dir = tmp_path / "model"
+    _run("tools/train.py", "--config", "configs/synthetic_cpu.yaml", *_tiny(), "--set", "train.num_steps=1",
+         "--data_dir", os.path.dirname(tiny_segment), "--model_dir", str(model_dir))
+    zip_path = tmp_path / "submission.zip"
+    out, _ = _run("tools/av2_submission.py", "--config", "configs/synthetic_cpu.yaml", *_tiny(), "--checkpoint",
+                  str(model_dir), "--leaderboard", "v1", "--split", "test", "--masks", str(tmp_path / "test-masks.zip"),
+                  "--format_json", str(fmt), "--data_dir", records, "--out", str(zip_path))
+    assert "checked against the layout and " + str(fmt) in out
+    with zipfile.ZipFile(zip_path) as zf:
+        assert sorted(zf.namelist()) == sorted(f"{log_id}/{ts}.feather" for ts in masks)
+        for ts, m in masks.items():
+            table = feather.read_table(zf.open(f"{log_id}/{ts}.feather"))
+            assert table.schema.names == FLOW + ["is_dynamic"] and table.num_rows == int(m.sum())
