@@ -13,7 +13,14 @@ python -m ff3d_tf.labels.own_records_bench --out benchmarks/own_records_cpu.json
 - `sample_nsfp`: `tools/predict.py --method nsfp` on the pair as two point files with their poses (t0: sweep 0, its
   partner sweep 1, as the challenge pairs them; no map), scored by the challenge's arithmetic over its 35 m box
   (`av2_sequences.challenge_scores`). `--nsfp_out DIR` scores a run made before (its DIR/000000.npz and
-  DIR/predict_log.txt) instead of running the tool.
+  DIR/predict_log.txt) instead of running the tool. Where its error lies (`where_the_error_lies`): the same score with
+  the true flow put in place of the prediction on every evaluated point the fit did not predict (the points without
+  prediction, above the fit's crop, and those the ground rule gave flow 0), and again on the fitted points: what is
+  left of the error in each case is the other set's.
+- `sample_ground`: the pair's ground without a map against Argoverse 2's map ground (the challenge's), inside the
+  fit's crop (`nsfp.keep_mask`), both clouds: points called ground that the map does not (removed from the fit; given
+  flow 0) and map ground left in the fit, for the predictor's rule (`nsfp_predictor.joint_height_ground_masks`) and
+  the pseudo-label job's (`pseudo_records.ground_masks`, rule `height`: each cloud on its own).
 """
 from __future__ import annotations
 
@@ -33,7 +40,7 @@ from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pair_records
 from ff3d_tf.data.av2 import argoverse2
 from ff3d_tf.data.files import box_table, sequences
-from ff3d_tf.labels import av2, av2_sequences, own_records
+from ff3d_tf.labels import av2, av2_sequences, nsfp, nsfp_predictor, own_records, pseudo_records
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")
@@ -125,13 +132,56 @@ def sample_nsfp(work_dir: str, log_dir: str = AV2_LOG, nsfp_out: str | None = No
     scores = av2_sequences.challenge_scores(log_dir, 0, flow, valid, sequences.DEFAULT_SWEEP_PERIOD_S)
     fit = re.search(r"nsfp pair 0: (\d+) steps, loss ([\d.]+), ([\d.]+) s, ground by (\w+)", log)
     p, z = scores["prediction"], scores["zero_flow"]
-    return {"command": " ".join(["python"] + command), "true_gap_s": gap_s, "tool_seconds": seconds,
+    return {"where_the_error_lies": _where_the_error_lies(log_dir, flow, valid),
+            "command": " ".join(["python"] + command), "true_gap_s": gap_s, "tool_seconds": seconds,
             "fit_steps": int(fit.group(1)) if fit else None, "fit_seconds": float(fit.group(3)) if fit else None,
             "ground_rule": fit.group(4) if fit else None, "evaluated_points": scores["evaluated_points"],
             "evaluated_points_without_prediction": scores["evaluated_points_without_prediction"],
             "three_way_epe_m": p["three_way/mean_epe_m"], "fg_dynamic_epe_m": p["three_way/fg_dynamic_epe_m"],
             "bucketed_dynamic_norm_epe": p["bucketed/mean_dynamic_norm_epe"],
             "zero_flow_three_way_epe_m": z["three_way/mean_epe_m"], "nsfp": p, "zero_flow": z}
+
+
+def _sample_pair(log_dir: str) -> dict:
+    return av2.challenge_pair(log_dir, 0, ExperimentConfig())
+
+
+def _where_the_error_lies(log_dir: str, flow: np.ndarray, valid: np.ndarray) -> dict:
+    """Three-way EPE with the truth put in on the points the fit did not predict, and on those it did (module
+    docstring)."""
+    ex = _sample_pair(log_dir)
+    ground_t0, _ = nsfp_predictor.joint_height_ground_masks(ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"])
+    fitted = valid & ~(ground_t0 & nsfp.keep_mask(ex["points_xyz_t0"], nsfp.MEASURED_FIT_OPTIONS))
+    # the truth as predict's flow: m/s over the gap the scores read it with
+    truth = ex["flow_mps_t0"] * pair_records.pair_gap_s(ex) / sequences.DEFAULT_SWEEP_PERIOD_S
+    out = {"fitted_points": int(fitted.sum())}
+    for name, replaced in (("truth_where_not_fitted", ~fitted), ("truth_where_fitted", fitted)):
+        scores = av2_sequences.challenge_scores(log_dir, 0, np.where(replaced[:, None], truth, flow),
+                                                valid | replaced, sequences.DEFAULT_SWEEP_PERIOD_S)
+        out[name + "_three_way_epe_m"] = scores["prediction"]["three_way/mean_epe_m"]
+    return out
+
+
+def sample_ground(log_dir: str = AV2_LOG) -> dict:
+    """The no-map ground rules against the map's ground on the sample pair (module docstring)."""
+    ex = _sample_pair(log_dir)
+    clouds = (("t0", ex["points_xyz_t0"], ex["is_ground_t0"]), ("tm1", ex["points_xyz_tm1_in_t0"], ex["is_ground_tm1"]))
+    rules = {"predictor_one_surface_for_both_clouds": nsfp_predictor.joint_height_ground_masks(
+                 ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"]),
+             "pseudo_label_job_height_each_cloud": pseudo_records.ground_masks(
+                 {"points_xyz_t0": ex["points_xyz_t0"], "points_xyz_tm1_in_t0": ex["points_xyz_tm1_in_t0"]},
+                 "height")[:2]}
+    out = {"map_ground_in_crop": {}}
+    for name, xyz, on_map in clouds:
+        keep = nsfp.keep_mask(xyz, nsfp.MEASURED_FIT_OPTIONS)
+        out["map_ground_in_crop"][name] = {"points_in_crop": int(keep.sum()), "map_ground": int((keep & on_map).sum())}
+    for rule, masks in rules.items():
+        out[rule] = {}
+        for (name, xyz, on_map), ground in zip(clouds, masks):
+            keep = nsfp.keep_mask(xyz, nsfp.MEASURED_FIT_OPTIONS)
+            out[rule][name] = {"ground_not_on_map": int((keep & ground & ~on_map).sum()),
+                               "map_ground_not_called_ground": int((keep & ~ground & on_map).sum())}
+    return out
 
 
 def main(argv=None):
@@ -145,6 +195,7 @@ def main(argv=None):
         result = {"machine": cpu.describe(), "load_average_at_start": bench.load_average(),
                   "records_speed": records_speed(work),
                   "av2_sample_as_files": {"labels": sample_labels(work)}}
+        result["av2_sample_as_files"]["ground"] = sample_ground()
         if not args.skip_nsfp:
             result["av2_sample_as_files"]["nsfp"] = sample_nsfp(work, nsfp_out=args.nsfp_out)
         bench.write_json(args.out, result, sort_keys=True)

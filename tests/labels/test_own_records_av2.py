@@ -1,7 +1,7 @@
 """Real LiDAR as your own files: the Argoverse 2 sample log's two sweeps written as a sweeps directory with a box
 table (`ff3d_tf.labels.av2_sequences`) give records whose labels are the Argoverse 2 path's; and NSFP without a
-model (`tools/predict.py --method nsfp`, no map: ground by the height rule) on the pair as plain files meets the bar
-of the challenge's arithmetic over its 35 m box (benchmarks/own_records_cpu.json)."""
+model (`tools/predict.py --method nsfp`, no map: ground by the height rule) on the pair as plain files scores, by the
+challenge's arithmetic over its 35 m box, what benchmarks/own_records_cpu.json (and docs/datasets.md) say."""
 import json
 import os
 import subprocess
@@ -56,7 +56,8 @@ def test_the_sample_log_as_files_is_labelled_as_the_av2_path_labels_it(tiny_conf
 @pytest.mark.slow
 def test_nsfp_without_a_model_on_the_sample_pair_as_files(tmp_path):
     """`tools/predict.py --method nsfp` on the pair as two point files with their poses (t0: sweep 0, its partner
-    sweep 1, as the challenge pairs them), no map: three-way EPE <= 0.08 m by the challenge's arithmetic."""
+    sweep 1, as the challenge pairs them), no map: the three-way EPE by the challenge's arithmetic is the benchmark's
+    (the fit is deterministic on one machine; other CPUs round differently) and well below zero flow's."""
     pair = av2_sequences.write_log_as_sequence(AV2_LOG, str(tmp_path / "pair"), with_boxes=False, pose_files=True)
     stamps = argoverse2.sweep_timestamps(AV2_LOG)
     gap_s = (stamps[1] - stamps[0]) * 1e-9
@@ -73,5 +74,7 @@ def test_nsfp_without_a_model_on_the_sample_pair_as_files(tmp_path):
         flow, valid = z["flow_mps"], z["point_valid"]
     scores = av2_sequences.challenge_scores(AV2_LOG, 0, flow, valid, gap_s)
     three_way = scores["prediction"]["three_way/mean_epe_m"]
-    assert three_way <= 0.08, scores
+    with open(BENCH) as f:
+        documented = json.load(f)["av2_sample_as_files"]["nsfp"]["three_way_epe_m"]
+    assert abs(three_way - documented) <= 0.01, (documented, scores)
     assert three_way < 0.5 * scores["zero_flow"]["three_way/mean_epe_m"]

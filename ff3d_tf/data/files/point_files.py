@@ -231,7 +231,12 @@ def _npy_header(path: str, stream, where: str) -> tuple[tuple[int, ...], bool, n
         raise PointFileError(path, where, f"not a readable .npy array ({err})") from None
     if dtype.hasobject:
         raise PointFileError(path, where, f"type {dtype}: holds Python objects (pickled); point files hold numbers")
-    return tuple(int(d) for d in shape), bool(fortran), dtype
+    if dtype.itemsize == 0:  # no bytes a value: any shape would fit any file, so the size check below cannot hold
+        raise PointFileError(path, where, f"type {dtype!r} has no bytes a value; point files hold numbers")
+    shape = tuple(int(d) for d in shape)
+    if any(d < 0 for d in shape):
+        raise PointFileError(path, where, f"the header says shape {shape}: a negative dimension")
+    return shape, bool(fortran), dtype
 
 
 def _npy_array(path: str, stream, total_bytes: int, where: str) -> np.ndarray:

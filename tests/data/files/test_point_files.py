@@ -324,6 +324,38 @@ def test_bad_npy_npz_bin_files(tmp_path):
     assert "unknown point file suffix" in _raises(path, "file", pf.read_point_file, path)
 
 
+def _npy_header_only(path, descr, shape, rows_written=0):
+    """An .npy whose header says `shape` of `descr`, followed by `rows_written` rows of zeros (float32 x 4)."""
+    from numpy.lib import format as npy_format
+    with open(path, "wb") as f:
+        npy_format.write_array_header_1_0(f, {"descr": descr, "fortran_order": False, "shape": shape})
+        f.write(np.zeros((rows_written, 4), "<f4").tobytes())
+    return str(path)
+
+
+def test_npy_header_declaring_a_huge_shape_is_refused_before_any_allocation(tmp_path):
+    """A crafted header claiming 4e9 x 4 float32 is refused from the file's size, naming the file and the field: no
+    MemoryError, and nothing near the claimed size is allocated (NumPy's allocations are traced by tracemalloc)."""
+    import tracemalloc
+    path = _npy_header_only(tmp_path / "huge.npy", "<f4", (4_000_000_000, 4), rows_written=10)
+    tracemalloc.start()
+    try:
+        message = _raises(path, "file", pf.read_point_file, path)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert "(4000000000, 4)" in message and "truncated" in message, message
+    assert peak < (1 << 20), peak  # the error comes from the header and the file's size, not from an allocation
+    # the same header as a pose file and as an .npz member
+    assert "truncated" in _raises(path, "pose", pf.read_pose, path)
+    # types without bytes a value would make any shape fit any file size: refused as such, never a raw error
+    for name, descr in (("fields.npy", []), ("void.npy", "|V0")):
+        path = _npy_header_only(tmp_path / name, descr, (10 ** 12,))
+        assert "no bytes a value" in _raises(path, "file", pf.read_point_file, path)
+    path = _npy_header_only(tmp_path / "negative.npy", "<f4", (-1, 4))
+    assert "negative dimension" in _raises(path, "file", pf.read_point_file, path)
+
+
 # --- poses ----------------------------------------------------------------------------------------------------------
 
 def _pose(yaw, t):
