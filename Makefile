@@ -2,17 +2,25 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
+CORE_STAMP := $(VENV)/.installed-core-v1
 STAMP := $(VENV)/.installed-v1
 
-.PHONY: install test test-slow demo clean
+.PHONY: install install-core test test-slow demo clean
 
+# install-core: TensorFlow, the Waymo protos (the synthetic segments are WOD Frames) and what the main job needs
+# (`make demo`); install: also the tests' and every tool's extras (Beam, JAX, ONNX, Rerun).
+install-core: $(CORE_STAMP)
 install: $(STAMP)
 
-$(STAMP): setup.py constraints.txt Makefile
+$(CORE_STAMP): setup.py constraints.txt Makefile
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -c constraints.txt -e ".[dev,beam,xla,onnx,viz3d]"
+	$(PY) -m pip install -q -c constraints.txt -e .
 	$(PY) -m pip install -q --no-deps waymo-open-dataset-tf-2-12-0==1.6.7
+	touch $(CORE_STAMP)
+
+$(STAMP): $(CORE_STAMP)
+	$(PY) -m pip install -q -c constraints.txt -e ".[dev,beam,xla,onnx,viz3d]"
 	touch $(STAMP)
 
 # Test files run on TEST_WORKERS processes (pytest-xdist, whole files per process, as Bazel runs its targets side by
@@ -36,7 +44,7 @@ test-slow: install
 MODEL ?= paper
 DEMO_OUT ?= demo_out
 
-demo: install
+demo: install-core
 	@$(if $(EMULATE_CPU),$(EMULATION) >/dev/null,true)
 	$(CPU_ENV) $(PY) tools/demo.py --out_dir $(DEMO_OUT) --model $(MODEL)
 

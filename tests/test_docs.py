@@ -892,6 +892,20 @@ CPU_TARGETS_TABLE = Table(
              V(_CS, "targets/forward_1m_over_32k"), "{:.2f}", False)))
 TABLES += (CPU_STEP_TABLE, CPU_STAGES_TABLE, CPU_FORWARD_TABLE, CPU_TARGETS_TABLE)
 
+# -- `make demo` on an AVX2-only CPU (tools/demo.py's demo_summary.json, issue 27's coffee-length first run)
+_DEMO = "demo_zen3.json"
+QUOTES += (
+    Quote(B, "{} ({} cores, family/model {})", (V(_DEMO, "demo/cpu/model_name"), V(_DEMO, "demo/cpu/cpu_count"),
+                                                V(_DEMO, "demo/cpu/family_model"))),
+    Quote(B, "took {} s: {} s to install what the demo needs (`make install-core`, every package downloaded) and {} s "
+             "for the demo, {} s of it training; the model's error on moving points is {} of zero flow's ({} vs {} "
+             "m/s).",
+          (V(_DEMO, "install_and_demo_seconds", "{:,.0f}"), V(_DEMO, "install_core_seconds", "{:,.0f}"),
+           V(_DEMO, "demo/seconds", "{:,.0f}"), V(_DEMO, "demo/stage_seconds/train", "{:,.0f}"),
+           V(_DEMO, "demo/moving_over_zero_flow", "{:.2f}"), V(_DEMO, "demo/moving_mean_l2_mps", "{:.2f}"),
+           V(_DEMO, "demo/zero_flow_moving_mean_l2_mps", "{:.2f}"))),
+)
+
 
 def test_lookup_render_and_the_figure_pattern():
     data = {"latency": {"32000": {"auto/float32": {"ms": 1400.07}}}, "runs": [{"p": 1, "v": 2}, {"p": 2, "v": 3}],

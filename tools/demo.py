@@ -83,7 +83,9 @@ def main():
     p.add_argument("--train_segments", type=int, default=4)
     p.add_argument("--val_segments", type=int, default=2)
     p.add_argument("--frames_per_segment", type=int, default=12)
-    p.add_argument("--lidar_scale", type=float, default=1.0, help="< 1 shrinks the range images (tests)")
+    p.add_argument("--lidar_scale", type=float, default=0.5,
+                   help="the synthetic lidars' resolution: range images of this fraction of WOD's rows and columns "
+                        "(1: WOD's own; the default keeps the demo within minutes on 2 cores, docs/benchmarks.md)")
     args = p.parse_args()
     out = args.out_dir
     t0 = time.time()
