@@ -67,6 +67,9 @@ def test_run_study_ground_removal(tiny_segment, tmp_path):
     assert bad.returncode != 0 and "shares must be in (0, 1]" in bad.stderr and not (tmp_path / "bad").exists()
 
 
+# Trains, then predicts through the tool on WOD and AV2 (~70 s); the fast suite runs the tool's paths in
+# tests/tools/test_predict_own_clouds.py and tests/inference/test_predict_job.py.
+@pytest.mark.slow
 def test_predict_from_checkpoint_on_wod_and_av2(tiny_segment, tiny_config, tmp_path):
     import numpy as np
     from conftest import AV2_LOG, TINY_OVERRIDES
