@@ -892,6 +892,15 @@ CPU_TARGETS_TABLE = Table(
              V(_CS, "targets/forward_1m_over_32k"), "{:.2f}", False)))
 TABLES += (CPU_STEP_TABLE, CPU_STAGES_TABLE, CPU_FORWARD_TABLE, CPU_TARGETS_TABLE)
 
+# -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
+_HC = "head_cost_cpu.json"
+QUOTES += (
+    Quote("docs/training.md", "On {} ({} cores, family/model {}; paper config, `model.compile=auto` -> {}, batch 1, "
+                              "`benchmarks/head_cost_cpu.json`), in the tool's own words: {}",
+          (V(_HC, "cpu/model_name"), V(_HC, "cpu/cpu_count"), V(_HC, "cpu/family_model"), V(_HC, "modes/inference"),
+           V(_HC, "note"))),
+)
+
 # -- `make demo` on an AVX2-only CPU (tools/demo.py's demo_summary.json, issue 27's coffee-length first run)
 _DEMO = "demo_zen3.json"
 QUOTES += (
