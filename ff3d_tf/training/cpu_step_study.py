@@ -41,7 +41,10 @@ JOBS = ("train", "forward")
 MODES = ("auto", "hybrid", "xla", "none")
 # The PyTorch FastFlow3D peer and ff3d_tf before this change as the issue measured them on an AMD Zen 3, and the
 # issue's targets: the anchor of `projection`, which cannot be measured here (no torch).
-PEER_FILE = os.path.join(children.ROOT, "benchmarks", "cpu_step_peer.json")
+# The checkout's benchmarks/ (realpath: under Bazel this module is a link into the checkout; benchmarks/ is not among
+# the runfiles).
+PEER_FILE = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.realpath(__file__)))), "benchmarks",
+                         "cpu_step_peer.json")
 
 
 def peer_figures(path: str = PEER_FILE) -> dict:

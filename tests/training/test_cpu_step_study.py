@@ -108,8 +108,7 @@ def test_autos_eigen_entries_are_the_leanest_modes_measured():
     import json
     import os
 
-    from ff3d_tf import children
-    with open(os.path.join(children.ROOT, "benchmarks", "cpu_step_avx2.json")) as f:
+    with open(os.path.join(os.path.dirname(study.PEER_FILE), "cpu_step_avx2.json")) as f:
         summary = json.load(f)["summary"]
     for job, startup_job in study.STARTUP_JOB.items():
         peaks = {m: summary[f"{job}/{m}"]["after"]["peak_rss_gb"] for m in compile_lib.RESOLVED_MODES}
