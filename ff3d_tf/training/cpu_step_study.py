@@ -158,8 +158,21 @@ BN_OP_TYPES = ("FusedBatchNorm", "BatchNorm")  # substrings of the op types coun
 
 
 def stage_times(cfg, mode: str, labelled: dict, runs: int) -> dict:
-    """The parts of a training step in compile `mode`, each alone, round robin (median ms, and the peak resident
-    memory a call adds above what the process held before it, GB):
+    """The parts of a training step in compile `mode` (`step_parts`), each alone, round robin: median ms, and the peak
+    resident memory a call adds above what the process held before it, GB. "batchnorm_ms": the BatchNorm kernels'
+    time inside one conv_forward_backward call (TensorFlow profiler; None in mode xla, where they are fused into XLA's
+    program)."""
+    calls = {k: bench.fetched(lambda f=f, a=a: f(*a)) for k, (f, a) in step_parts(cfg, mode, labelled).items()}
+    readings = bench.round_robin(calls, runs, warmup=1, reading=bench.timed_with_memory)
+    out = {k: {"median_ms": bench.middle([r["ms"] for r in rs]),
+               "peak_above_before_gb": bench.middle([r["peak_rss_gb"] - r["rss_before_gb"] for r in rs])}
+           for k, rs in readings.items()}
+    out["batchnorm_ms"] = None if mode == "xla" else _op_type_ms(calls["conv_forward_backward"], BN_OP_TYPES)
+    return out
+
+
+def step_parts(cfg, mode: str, labelled: dict) -> dict:
+    """{part: (compiled function, its arguments)}: the parts of a training step in compile `mode` on `labelled`:
 
       point_forward          rows A-B (pillars, point encoder, scatter; BN statistics of training) and W-Z (head)
       point_forward_backward the same and their gradients (upstream: ones)
@@ -169,9 +182,7 @@ def stage_times(cfg, mode: str, labelled: dict, runs: int) -> dict:
       loss                   the loss and its gradient with respect to the flow
 
     compiled as the step compiles them: mode xla, one XLA program each; hybrid, the point stages as XLA programs
-    (`compile_lib.hybrid_encode`) and the rest as graph kernels; none, graph kernels. "batchnorm_ms": the BatchNorm
-    kernels' time inside one conv_forward_backward call (TensorFlow profiler; None in mode xla, where they are fused
-    into XLA's program)."""
+    (`compile_lib.hybrid_encode`) and the rest as graph kernels; none, graph kernels."""
     import tensorflow as tf
     from ff3d_tf.config import replace_config
     from ff3d_tf.model import build_model
@@ -236,20 +247,13 @@ def stage_times(cfg, mode: str, labelled: dict, runs: int) -> dict:
                                    cfg.train.background_weight, 1)
         return tape.gradient(loss, flow)
 
-    fns = {"point_forward": (tf.function(lambda x, g: decode(g, encode(x)), jit_compile=xla), (inputs, grid0)),
-           "point_forward_backward": (tf.function(point_fb, jit_compile=xla), (inputs, grid0)),
-           "conv_forward": (tf.function(lambda b: model.dense_stages(b, True), jit_compile=xla),
-                            (encoded0["bev_features"],)),
-           "conv_forward_backward": (tf.function(conv_fb, jit_compile=xla), (encoded0["bev_features"],)),
-           "optimizer": (tf.function(optimizer), (state, grads)),
-           "loss": (tf.function(loss_fb, jit_compile=xla), (flow0["flow_mps"],))}
-    calls = {k: bench.fetched(lambda f=f, a=a: f(*a)) for k, (f, a) in fns.items()}
-    readings = bench.round_robin(calls, runs, warmup=1, reading=bench.timed_with_memory)
-    out = {k: {"median_ms": bench.middle([r["ms"] for r in rs]),
-               "peak_above_before_gb": bench.middle([r["peak_rss_gb"] - r["rss_before_gb"] for r in rs])}
-           for k, rs in readings.items()}
-    out["batchnorm_ms"] = None if xla else _op_type_ms(calls["conv_forward_backward"], BN_OP_TYPES)
-    return out
+    return {"point_forward": (tf.function(lambda x, g: decode(g, encode(x)), jit_compile=xla), (inputs, grid0)),
+            "point_forward_backward": (tf.function(point_fb, jit_compile=xla), (inputs, grid0)),
+            "conv_forward": (tf.function(lambda b: model.dense_stages(b, True), jit_compile=xla),
+                             (encoded0["bev_features"],)),
+            "conv_forward_backward": (tf.function(conv_fb, jit_compile=xla), (encoded0["bev_features"],)),
+            "optimizer": (tf.function(optimizer), (state, grads)),
+            "loss": (tf.function(loss_fb, jit_compile=xla), (flow0["flow_mps"],))}
 
 
 def _op_type_ms(call: Callable, substrings: Sequence[str]) -> float:
