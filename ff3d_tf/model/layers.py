@@ -308,6 +308,19 @@ class ConvBlock(keras.layers.Layer):
 
 
 @keras.saving.register_keras_serializable(package=_PKG)
+class BilinearUpsample2x(keras.layers.Layer):
+    """Row U2's bilinear x2 upsampling, the values of `keras.layers.UpSampling2D(2, interpolation="bilinear")` as
+    `ops.bilinear_upsample_2x` computes them (no temporary beyond the tensors' own size under XLA)."""
+
+    def call(self, x):
+        return ops.bilinear_upsample_2x(x)
+
+    def compute_output_shape(self, input_shape):
+        b, h, w, c = input_shape
+        return (b, None if h is None else 2 * h, None if w is None else 2 * w, c)
+
+
+@keras.saving.register_keras_serializable(package=_PKG)
 class UpsampleSkip(keras.layers.Layer):
     """Table rows S, T, U, Upsample-Skip(alpha, beta, d, d_b); linear throughout (no BN, no nonlinearity).
 
@@ -320,9 +333,7 @@ class UpsampleSkip(keras.layers.Layer):
         self.depth, self.bottleneck_depth = int(depth), int(bottleneck_depth)
         conv = dict(use_bias=False, padding="same", kernel_initializer="glorot_uniform")
         self.u1 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U1", **conv)
-        # U2 in float32 under mixed precision: TensorFlow's XLA lowering of the bilinear resize's gradient
-        # (ResizeBilinearGrad) returns float32 for bfloat16 inputs, which XLA rejects in a bfloat16 training step.
-        self.u2 = keras.layers.UpSampling2D(2, interpolation="bilinear", name="U2", dtype="float32")
+        self.u2 = BilinearUpsample2x(name="U2", dtype="float32")  # float32 also under mixed precision, as before
         self.u3 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U3", **conv)
         self.u5 = keras.layers.Conv2D(self.depth, 3, name="U5", **conv)
         self.u6 = keras.layers.Conv2D(self.depth, 3, name="U6", **conv)

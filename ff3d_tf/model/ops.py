@@ -1,6 +1,6 @@
 """The model's operations that are not layers: the point encoder's chunk loop (`chunked_segment_sum`, `POINT_CHUNK`
-points at a time by default, or the whole cloud at once with `ONE_CHUNK`) and two matrix products shaped for XLA
-(`dense_last_axis`, `narrow_matmul`).
+points at a time by default, or the whole cloud at once with `ONE_CHUNK`), two matrix products shaped for XLA
+(`dense_last_axis`, `narrow_matmul`) and the grid's bilinear x2 upsampling (`bilinear_upsample_2x`).
 
 Notation as in `ff3d_tf.model.layers`: P points (flattened over the batch), C channels.
 """
@@ -127,3 +127,30 @@ def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segme
 
     sums, *rows = run(to_chunks(points, tf.zeros([], points.dtype)), *weights)
     return sums, (tf.reshape(rows[0], [-1, rows[0].shape[-1]])[:total] if rows else None)
+
+
+
+
+def _double_axis(x, axis):
+    """Bilinear x2 along one spatial `axis` of x, half-pixel centres, edges clamped: output 2i samples input i - 1/4
+    (0.75 x[i] + 0.25 x[i-1]) and output 2i+1 samples i + 1/4 (0.75 x[i] + 0.25 x[i+1]), x[-1] and x[n] read as the
+    edge values, as `tf.image.resize(method="bilinear")` maps them."""
+    def part(start, size):
+        begin, sizes = [0] * len(x.shape), [-1] * len(x.shape)
+        begin[axis], sizes[axis] = start, size
+        return tf.slice(x, begin, sizes)
+
+    shape = tf.shape(x)
+    n = shape[axis]
+    before = tf.concat([part(0, 1), part(0, n - 1)], axis)
+    after = tf.concat([part(1, n - 1), part(n - 1, 1)], axis)
+    pairs = tf.stack([0.75 * x + 0.25 * before, 0.75 * x + 0.25 * after], axis + 1)
+    return tf.reshape(pairs, tf.concat([shape[:axis], [2 * n], shape[axis + 1:]], 0))
+
+
+def bilinear_upsample_2x(x):
+    """[B,H,W,C] -> [B,2H,2W,C]: the bilinear x2 upsampling of `tf.image.resize` (half-pixel centres, no antialias:
+    Keras's bilinear `UpSampling2D`) as slices, weighted sums and an interleave, one spatial axis at a time; the
+    values are the resize's to float rounding. XLA lowers the resize and its gradient (ResizeBilinearGrad) through
+    temporaries of many times the input's size; these ops and their gradients need none beyond the tensors' own."""
+    return _double_axis(_double_axis(x, 1), 2)

@@ -21,7 +21,7 @@ from ff3d_tf.model import build_model, ops
 SINGLE_CHUNK_OPS = {
     "Add", "And", "Cast", "Concat", "ConstantOfShape", "Conv", "Equal", "Expand", "Floor", "Gather", "Greater",
     "GreaterOrEqual", "IsInf", "IsNaN", "Less", "LessOrEqual", "MatMul", "Max", "Min", "Mul", "Not", "Or", "Pad",
-    "Range", "ReduceSum", "Relu", "Reshape", "Resize", "ScatterElements", "ScatterND", "Shape", "Slice", "Split",
+    "Range", "ReduceSum", "Relu", "Reshape", "ScatterElements", "ScatterND", "Shape", "Slice", "Split",
     "Squeeze", "Sub", "Sum", "Transpose", "Unsqueeze", "Where"}
 
 

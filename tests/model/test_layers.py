@@ -177,6 +177,46 @@ def test_conv_block_batch_norm_matches_numpy(training):
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)
 
 
+def _bilinear_2x_matrix(n):
+    """[2n, n]: output o samples input coordinate (o + 0.5) / 2 - 0.5 (half-pixel centres), linear between the two
+    nearest inputs, clamped to the edges: rows 2i = 0.75 e_i + 0.25 e_(i-1), rows 2i+1 = 0.75 e_i + 0.25 e_(i+1)."""
+    m = np.zeros((2 * n, n))
+    for o in range(2 * n):
+        c = min(max((o + 0.5) / 2 - 0.5, 0.0), n - 1.0)
+        lo = int(np.floor(c))
+        hi = min(lo + 1, n - 1)
+        m[o, lo] += 1.0 - (c - lo)
+        m[o, hi] += c - lo
+    return m
+
+
+@pytest.mark.parametrize("shape", [(2, 1, 1, 3), (1, 2, 3, 4), (2, 7, 5, 3)])
+def test_bilinear_upsample_2x_matches_numpy_and_keras(shape):
+    """Values: the interpolation matrices in NumPy (and Keras's bilinear UpSampling2D, row U2's layer before);
+    gradient: the matrices' transposes, up^T(g) = M_h^T g M_w, in eager TensorFlow and in one XLA program."""
+    _, h, w, _ = shape
+    x = RNG.normal(0, 1, shape).astype(np.float32)
+    g = RNG.normal(0, 1, (shape[0], 2 * h, 2 * w, shape[3])).astype(np.float32)
+    mh, mw = _bilinear_2x_matrix(h), _bilinear_2x_matrix(w)
+    expected = np.einsum("oh,bhwc,pw->bopc", mh, x, mw)
+    expected_grad = np.einsum("oh,bopc,pw->bhwc", mh, g, mw)
+    layer = L.BilinearUpsample2x()
+    keras_out = keras.layers.UpSampling2D(2, interpolation="bilinear")(x)
+    np.testing.assert_allclose(keras_out, expected, atol=1e-5)
+
+    def value_and_grad(x):
+        with tf.GradientTape() as tape:
+            tape.watch(x)
+            y = layer(x)
+            loss = tf.reduce_sum(y * g)
+        return y, tape.gradient(loss, x)
+
+    for fn in (value_and_grad, tf.function(value_and_grad, jit_compile=True)):
+        y, grad = fn(tf.constant(x))
+        np.testing.assert_allclose(y, expected, atol=1e-5)
+        np.testing.assert_allclose(grad, expected_grad, atol=1e-5)
+
+
 def test_upsample_skip():
     alpha = tf.constant(RNG.normal(0, 1, (B, 4, 4, 6)).astype(np.float32))
     beta = tf.constant(RNG.normal(0, 1, (B, 8, 8, 4)).astype(np.float32))
