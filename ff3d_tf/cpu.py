@@ -52,11 +52,13 @@ TENSORFLOW_ONEDNN_FLAGS = ("avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16",
 STARTUP_KEYS = ("TF_ENABLE_ONEDNN_OPTS", "TF_CPU_ALLOCATOR_USE_BFC")
 STARTUP_JOBS = ("train", "inference")
 # The start-up environment per job on an x86 CPU with AVX2 but none of TENSORFLOW_ONEDNN_FLAGS usable (AMD Zen 3,
-# Intel Haswell to Comet Lake): oneDNN off (TensorFlow's own default there; oneDNN has no bfloat16 convolutions there)
-# and TensorFlow's CPU allocator as a BFC pool (XLA's programs and Eigen's kernels then reuse memory instead of
-# faulting in fresh pages every call). The measurement with them ("after"): benchmarks/cpu_step_avx2.json
-# (tools/benchmark_cpu_step.py, both libraries capped to AVX2), docs/benchmarks.md.
-AVX2_STARTUP = {"train": {"TF_ENABLE_ONEDNN_OPTS": "0", "TF_CPU_ALLOCATOR_USE_BFC": "true"},
+# Intel Haswell to Comet Lake): oneDNN off (TensorFlow's own default there; oneDNN has no bfloat16 convolutions there).
+# To serve, TensorFlow's CPU allocator as a BFC pool (Eigen's kernels then reuse memory instead of faulting in fresh
+# pages every call); to train, malloc and free as TensorFlow has them there: the pool keeps the region it grew to for
+# the training program's temporaries, a higher peak for about the same step time. The measurement with them
+# ("after"): benchmarks/cpu_step_avx2.json (tools/benchmark_cpu_step.py, both libraries capped to AVX2),
+# docs/benchmarks.md.
+AVX2_STARTUP = {"train": {"TF_ENABLE_ONEDNN_OPTS": "0"},
                 "inference": {"TF_ENABLE_ONEDNN_OPTS": "0", "TF_CPU_ALLOCATOR_USE_BFC": "true"}}
 
 

@@ -22,8 +22,8 @@ only: TF_ENABLE_ONEDNN_OPTS=1 on an AMD Zen 3 or an Intel Haswell to Comet Lake)
 kernels, TensorFlow's default on an AVX2-only CPU and the project's start-up choice there,
 `ff3d_tf.cpu.startup_environment`). The rule of each entry and its measurement:
   onednn_avx512  hybrid for both jobs, the fastest forward there (benchmarks/latency_cpu.json);
-  eigen          per job, the mode with the lowest peak memory (with TensorFlow's BFC CPU allocator, the start-up's
-                 choice): xla for the training step, hybrid for the forward; `none` and `hybrid` train faster there
+  eigen          per job, the mode with the lowest peak memory (in the start-up's environment for the job,
+                 `ff3d_tf.cpu.AVX2_STARTUP`): xla for the training step, hybrid for the forward; `none` and `hybrid` train faster there
                  but hold more memory (benchmarks/cpu_step_avx2.json, "after", tools/benchmark_cpu_step.py with both
                  libraries capped to AVX2; docs/benchmarks.md, "The training step on AVX2-only CPUs");
   onednn_avx2    xla for both jobs: measured with `tools/benchmark_cpu_step.py --settings after_onednn`, a run whose
