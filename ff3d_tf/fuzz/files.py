@@ -124,166 +124,209 @@ def _write_lines(path: str, lines: list[str]) -> None:
         f.write("".join(line + "\n" for line in lines))
 
 
-def mutate(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
-    """Damages one file of a (copied) clean sequence in place: (path of the damaged file, what was done)."""
-    def at(name):
-        return os.path.join(directory, name)
-    if kind == "npy_shape_lie":
-        path = at("000000.npy")
-        data = open(path, "rb").read()
-        a = point_files.load_npy(path)
-        shape = pick(rng, [(HUGE_POINTS,), (HUGE_POINTS, 4), (len(a) + 1,), (len(a) - 1,), (2 ** 62,)])
-        descr = pick(rng, [a.dtype.descr, "<f4", "<f8"])
-        offset = len(data) - a.nbytes
-        with open(path, "wb") as f:
-            f.write(_npy_with_header({"descr": descr, "fortran_order": False, "shape": shape}, data[offset:]))
-        return path, f"{kind}: header shape {shape} of {descr}"
-    if kind == "npy_object_array":
-        path = at("000000.npy")
-        np.save(path, np.array([object()] * 5 + [1.5], dtype=object), allow_pickle=True)
-        return path, f"{kind}: a pickled object array"
-    if kind in ("npz_size_lie", "npz_shape_lie"):
-        path = at("000001.npz")
-        data = bytearray(open(path, "rb").read())
-        if kind == "npz_size_lie":  # the central directory's uncompressed size of the member
-            where = data.find(b"PK\x01\x02")
-            claim = pick(rng, [0xFFFFFFF0, 1 << 31, 12345])
-            data[where + 24:where + 28] = struct.pack("<I", claim)
-            with open(path, "wb") as f:
-                f.write(bytes(data))
-            return path, f"{kind}: the archive claims {claim} bytes uncompressed"
-        shape = pick(rng, [(HUGE_POINTS, 4), (300, 400000), (299, 4)])
-        with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
-            z.writestr("points.npy", _npy_with_header({"descr": "<f4", "fortran_order": False, "shape": shape},
-                                                      np.zeros((300, 4), "<f4").tobytes()))
-        return path, f"{kind}: member header shape {shape}"
-    if kind in ("pcd_points_lie", "pcd_count_lie", "lzf_bomb"):
-        path = at("000002.pcd") if kind == "lzf_bomb" or rng.integers(2) else at("000006.pcd")
-        data = open(path, "rb").read()
-        end = data.find(b"DATA")
-        head, rest = data[:end].decode(), data[end:]
-        if kind == "pcd_points_lie":
-            n = pick(rng, [HUGE_POINTS, 301, 10 ** 20])
-            head = re.sub(r"POINTS \d+", f"POINTS {n}", re.sub(r"WIDTH \d+", f"WIDTH {n}", head))
-            what = f"POINTS and WIDTH {n}"
-        elif kind == "pcd_count_lie":
-            count = pick(rng, ["1000000000 1 1 1", "1 1 1 99999999999999999999", "2 1 1 1", "1 1 1"])
-            head = re.sub(r"COUNT [\d ]+\n", f"COUNT {count}\n", head)
-            what = f"COUNT {count}"
-        else:  # binary_compressed claiming far more than its stream: points and uncompressed size agree
-            n = pick(rng, [200_000_000, 10_000_000, 4_000_000])  # n * 16 bytes within the uint32 size field
-            head = re.sub(r"POINTS \d+", f"POINTS {n}", re.sub(r"WIDTH \d+", f"WIDTH {n}", head))
-            repeat = bytes([0x00, 0x41]) + bytes([0xE0, 0xFF, 0x00]) * 200  # one literal, then 264-byte copies
-            rest = b"DATA binary_compressed\n" + struct.pack("<II", len(repeat), n * 16) + repeat
-            what = f"{n} points claimed by an LZF stream of {len(repeat)} bytes"
-        with open(path, "wb") as f:
-            f.write(head.encode() + rest)
-        return path, f"{kind}: {what}"
-    if kind == "ply_count_lie":
-        path = at("000003.ply")
-        data = open(path, "rb").read()
-        n = pick(rng, [HUGE_POINTS, 301, 299, 10 ** 19])
-        with open(path, "wb") as f:
-            f.write(re.sub(rb"element vertex \d+", f"element vertex {n}".encode(), data, count=1))
-        return path, f"{kind}: element vertex {n}"
-    if kind == "nan_point":
-        name = pick(rng, ["000004.bin", "000005.pcd.bin", "000001.npz", "000006.pcd"])
-        path = at(name)
-        value = float(pick(rng, NONFINITE))
-        if name.endswith(".npz"):
-            with np.load(path) as z:
-                points = z["points"].copy()
-            points[int(rng.integers(len(points))), int(rng.integers(3))] = value
-            np.savez_compressed(path, points=points)
-        elif name.endswith(".pcd"):
-            lines = _text_lines(path)
-            body = [i for i, line in enumerate(lines) if line and line[0] in "-0123456789"]
-            i = pick(rng, body)
-            values = lines[i].split()
-            values[int(rng.integers(3))] = repr(value)
-            lines[i] = " ".join(values)
-            _write_lines(path, lines)
-        else:
-            width = 5 if name.endswith(".pcd.bin") else 4
-            rows = np.fromfile(path, "<f4").reshape(-1, width)
-            rows[int(rng.integers(len(rows))), int(rng.integers(3))] = value
-            rows.tofile(path)
-        return path, f"{kind}: {value} in {name}"
-    if kind in ("truncate_points", "bit_flip_points", "bit_flip_any", "truncate_any"):
-        names = list(SWEEP_NAMES) if kind.endswith("points") else sorted(os.listdir(directory))
-        path = at(pick(rng, names))
-        data = bytearray(open(path, "rb").read())
-        if kind.startswith("truncate"):
-            data = data[: int(rng.integers(0, max(len(data), 1)))]
-        else:
-            for _ in range(int(rng.integers(1, 17))):
-                if data:
-                    data[int(rng.integers(len(data)))] ^= 1 << int(rng.integers(8))
+def _at(directory: str, name: str) -> str:
+    return os.path.join(directory, name)
+
+
+def _npy_header_damage(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """A .npy header whose shape does not match its data."""
+    path = _at(directory, "000000.npy")
+    data = open(path, "rb").read()
+    a = point_files.load_npy(path)
+    shape = pick(rng, [(HUGE_POINTS,), (HUGE_POINTS, 4), (len(a) + 1,), (len(a) - 1,), (2 ** 62,)])
+    descr = pick(rng, [a.dtype.descr, "<f4", "<f8"])
+    offset = len(data) - a.nbytes
+    with open(path, "wb") as f:
+        f.write(_npy_with_header({"descr": descr, "fortran_order": False, "shape": shape}, data[offset:]))
+    return path, f"{kind}: header shape {shape} of {descr}"
+
+
+def _npy_object_array(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """A .npy of pickled objects."""
+    path = _at(directory, "000000.npy")
+    np.save(path, np.array([object()] * 5 + [1.5], dtype=object), allow_pickle=True)
+    return path, f"{kind}: a pickled object array"
+
+
+def _npz_damage(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """A .npz whose archive size or member header lies."""
+    path = _at(directory, "000001.npz")
+    data = bytearray(open(path, "rb").read())
+    if kind == "npz_size_lie":  # the central directory's uncompressed size of the member
+        where = data.find(b"PK\x01\x02")
+        claim = pick(rng, [0xFFFFFFF0, 1 << 31, 12345])
+        data[where + 24:where + 28] = struct.pack("<I", claim)
         with open(path, "wb") as f:
             f.write(bytes(data))
-        return path, f"{kind}: {os.path.basename(path)}"
-    if kind == "pose_damage":
-        path = at(point_files.POSES_FILE)
+        return path, f"{kind}: the archive claims {claim} bytes uncompressed"
+    shape = pick(rng, [(HUGE_POINTS, 4), (300, 400000), (299, 4)])
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("points.npy", _npy_with_header({"descr": "<f4", "fortran_order": False, "shape": shape},
+                                                  np.zeros((300, 4), "<f4").tobytes()))
+    return path, f"{kind}: member header shape {shape}"
+
+
+def _pcd_header_damage(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """A .pcd whose POINTS, WIDTH or COUNT lies, or an LZF stream claiming far more than it holds."""
+    path = _at(directory, "000002.pcd") if kind == "lzf_bomb" or rng.integers(2) else _at(directory, "000006.pcd")
+    data = open(path, "rb").read()
+    end = data.find(b"DATA")
+    head, rest = data[:end].decode(), data[end:]
+    if kind == "pcd_points_lie":
+        n = pick(rng, [HUGE_POINTS, 301, 10 ** 20])
+        head = re.sub(r"POINTS \d+", f"POINTS {n}", re.sub(r"WIDTH \d+", f"WIDTH {n}", head))
+        what = f"POINTS and WIDTH {n}"
+    elif kind == "pcd_count_lie":
+        count = pick(rng, ["1000000000 1 1 1", "1 1 1 99999999999999999999", "2 1 1 1", "1 1 1"])
+        head = re.sub(r"COUNT [\d ]+\n", f"COUNT {count}\n", head)
+        what = f"COUNT {count}"
+    else:  # binary_compressed claiming far more than its stream: points and uncompressed size agree
+        n = pick(rng, [200_000_000, 10_000_000, 4_000_000])  # n * 16 bytes within the uint32 size field
+        head = re.sub(r"POINTS \d+", f"POINTS {n}", re.sub(r"WIDTH \d+", f"WIDTH {n}", head))
+        repeat = bytes([0x00, 0x41]) + bytes([0xE0, 0xFF, 0x00]) * 200  # one literal, then 264-byte copies
+        rest = b"DATA binary_compressed\n" + struct.pack("<II", len(repeat), n * 16) + repeat
+        what = f"{n} points claimed by an LZF stream of {len(repeat)} bytes"
+    with open(path, "wb") as f:
+        f.write(head.encode() + rest)
+    return path, f"{kind}: {what}"
+
+
+def _ply_count_lie(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """A .ply whose vertex count lies."""
+    path = _at(directory, "000003.ply")
+    data = open(path, "rb").read()
+    n = pick(rng, [HUGE_POINTS, 301, 299, 10 ** 19])
+    with open(path, "wb") as f:
+        f.write(re.sub(rb"element vertex \d+", f"element vertex {n}".encode(), data, count=1))
+    return path, f"{kind}: element vertex {n}"
+
+
+def _nonfinite_point(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """One coordinate of one point not finite, in a binary, .npz or text .pcd sweep."""
+    name = pick(rng, ["000004.bin", "000005.pcd.bin", "000001.npz", "000006.pcd"])
+    path = _at(directory, name)
+    value = float(pick(rng, NONFINITE))
+    if name.endswith(".npz"):
+        with np.load(path) as z:
+            points = z["points"].copy()
+        points[int(rng.integers(len(points))), int(rng.integers(3))] = value
+        np.savez_compressed(path, points=points)
+    elif name.endswith(".pcd"):
         lines = _text_lines(path)
-        i = int(rng.integers(len(lines)))
+        body = [i for i, line in enumerate(lines) if line and line[0] in "-0123456789"]
+        i = pick(rng, body)
         values = lines[i].split()
-        how = pick(rng, ["nan", "scale", "drop_number", "text", "drop_line", "reflect"])
-        if how == "nan":
-            values[int(rng.integers(len(values)))] = str(pick(rng, NONFINITE))
-        elif how == "scale":
-            values[0] = "1.5"
-        elif how == "drop_number":
-            values = values[:-1]
-        elif how == "text":
-            values[int(rng.integers(len(values)))] = "x1"
-        elif how == "reflect":
-            values[0] = "-1"
+        values[int(rng.integers(3))] = repr(value)
         lines[i] = " ".join(values)
-        if how == "drop_line":
-            del lines[i]
         _write_lines(path, lines)
-        return path, f"{kind}: {how} at line {i + 1}"
-    if kind == "timestamps_damage":
-        path = at(sequences.TIMESTAMPS_FILE)
-        lines = _text_lines(path)
-        i = int(rng.integers(1, len(lines)))
-        how = pick(rng, ["backwards", "nan", "drop_line", "text", "huge", "two_values"])
-        lines[i] = {"backwards": "1.0", "nan": "nan", "text": "soon", "huge": "1e400", "two_values": "1 2",
-                    "drop_line": ""}[how]
-        _write_lines(path, lines)
-        return path, f"{kind}: {how} at line {i + 1}"
-    if kind == "box_table_damage":
-        path = at(box_table.BOX_TABLE_NAMES[0])
-        lines = _text_lines(path)
-        header = lines[0].split(",")
-        i = int(rng.integers(1, len(lines)))
-        cells = lines[i].split(",")
-        how = pick(rng, ["drop_column", "unknown_class", "negative_size", "track_gap", "nan", "text_number",
-                         "duplicate_row", "unknown_sweep", "short_row", "not_utf8"])
-        if how == "drop_column":
-            j = int(rng.integers(len(header)))
-            lines = [",".join(c for k, c in enumerate(line.split(",")) if k != j) for line in lines]
-        elif how == "track_gap":
-            if len(lines) > 3:
-                del lines[2]
-        elif how == "duplicate_row":
-            lines.insert(i, lines[i])
-        elif how == "short_row":
-            lines[i] = ",".join(cells[:5])
-        elif how == "not_utf8":
-            with open(path, "wb") as f:
-                f.write("\n".join(lines).encode() + b"\n\xff\xfe,\x80\n")
-            return path, f"{kind}: {how}"
-        else:
-            column = {"unknown_class": "class", "negative_size": pick(rng, ["length", "width", "height"]),
-                      "nan": pick(rng, list(box_table.NUMERIC_COLUMNS)),
-                      "text_number": pick(rng, list(box_table.NUMERIC_COLUMNS)), "unknown_sweep": "sweep"}[how]
-            cells[header.index(column)] = {"unknown_class": "spaceship", "negative_size": "-2", "nan": "nan",
-                                           "text_number": "wide", "unknown_sweep": "999999"}[how]
-            lines[i] = ",".join(cells)
-        _write_lines(path, lines)
-        return path, f"{kind}: {how} at row {i}"
-    raise ValueError(f"unknown files mutation kind {kind!r}; one of {KINDS}")
+    else:
+        width = 5 if name.endswith(".pcd.bin") else 4
+        rows = np.fromfile(path, "<f4").reshape(-1, width)
+        rows[int(rng.integers(len(rows))), int(rng.integers(3))] = value
+        rows.tofile(path)
+    return path, f"{kind}: {value} in {name}"
+
+
+def _bytes_damage(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """A point file (or any file) truncated or with bits flipped."""
+    names = list(SWEEP_NAMES) if kind.endswith("points") else sorted(os.listdir(directory))
+    path = _at(directory, pick(rng, names))
+    data = bytearray(open(path, "rb").read())
+    if kind.startswith("truncate"):
+        data = data[: int(rng.integers(0, max(len(data), 1)))]
+    else:
+        for _ in range(int(rng.integers(1, 17))):
+            if data:
+                data[int(rng.integers(len(data)))] ^= 1 << int(rng.integers(8))
+    with open(path, "wb") as f:
+        f.write(bytes(data))
+    return path, f"{kind}: {os.path.basename(path)}"
+
+
+def _pose_damage(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """One line of the poses file damaged or dropped."""
+    path = _at(directory, point_files.POSES_FILE)
+    lines = _text_lines(path)
+    i = int(rng.integers(len(lines)))
+    values = lines[i].split()
+    how = pick(rng, ["nan", "scale", "drop_number", "text", "drop_line", "reflect"])
+    if how == "nan":
+        values[int(rng.integers(len(values)))] = str(pick(rng, NONFINITE))
+    elif how == "scale":
+        values[0] = "1.5"
+    elif how == "drop_number":
+        values = values[:-1]
+    elif how == "text":
+        values[int(rng.integers(len(values)))] = "x1"
+    elif how == "reflect":
+        values[0] = "-1"
+    lines[i] = " ".join(values)
+    if how == "drop_line":
+        del lines[i]
+    _write_lines(path, lines)
+    return path, f"{kind}: {how} at line {i + 1}"
+
+
+def _timestamps_damage(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """One line of the timestamps file damaged."""
+    path = _at(directory, sequences.TIMESTAMPS_FILE)
+    lines = _text_lines(path)
+    i = int(rng.integers(1, len(lines)))
+    how = pick(rng, ["backwards", "nan", "drop_line", "text", "huge", "two_values"])
+    lines[i] = {"backwards": "1.0", "nan": "nan", "text": "soon", "huge": "1e400", "two_values": "1 2",
+                "drop_line": ""}[how]
+    _write_lines(path, lines)
+    return path, f"{kind}: {how} at line {i + 1}"
+
+
+def _box_table_damage(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """One row or column of the box table damaged."""
+    path = _at(directory, box_table.BOX_TABLE_NAMES[0])
+    lines = _text_lines(path)
+    header = lines[0].split(",")
+    i = int(rng.integers(1, len(lines)))
+    cells = lines[i].split(",")
+    how = pick(rng, ["drop_column", "unknown_class", "negative_size", "track_gap", "nan", "text_number",
+                     "duplicate_row", "unknown_sweep", "short_row", "not_utf8"])
+    if how == "drop_column":
+        j = int(rng.integers(len(header)))
+        lines = [",".join(c for k, c in enumerate(line.split(",")) if k != j) for line in lines]
+    elif how == "track_gap":
+        if len(lines) > 3:
+            del lines[2]
+    elif how == "duplicate_row":
+        lines.insert(i, lines[i])
+    elif how == "short_row":
+        lines[i] = ",".join(cells[:5])
+    elif how == "not_utf8":
+        with open(path, "wb") as f:
+            f.write("\n".join(lines).encode() + b"\n\xff\xfe,\x80\n")
+        return path, f"{kind}: {how}"
+    else:
+        column = {"unknown_class": "class", "negative_size": pick(rng, ["length", "width", "height"]),
+                  "nan": pick(rng, list(box_table.NUMERIC_COLUMNS)),
+                  "text_number": pick(rng, list(box_table.NUMERIC_COLUMNS)), "unknown_sweep": "sweep"}[how]
+        cells[header.index(column)] = {"unknown_class": "spaceship", "negative_size": "-2", "nan": "nan",
+                                       "text_number": "wide", "unknown_sweep": "999999"}[how]
+        lines[i] = ",".join(cells)
+    _write_lines(path, lines)
+    return path, f"{kind}: {how} at row {i}"
+
+
+# Each kind's mutation: (directory, kind, rng) -> (path of the damaged file, what was done).
+_MUTATIONS = {"npy_shape_lie": _npy_header_damage, "npy_object_array": _npy_object_array,
+              "npz_size_lie": _npz_damage, "npz_shape_lie": _npz_damage, "pcd_points_lie": _pcd_header_damage,
+              "pcd_count_lie": _pcd_header_damage, "lzf_bomb": _pcd_header_damage, "ply_count_lie": _ply_count_lie,
+              "nan_point": _nonfinite_point, "truncate_points": _bytes_damage, "bit_flip_points": _bytes_damage,
+              "bit_flip_any": _bytes_damage, "truncate_any": _bytes_damage, "pose_damage": _pose_damage,
+              "timestamps_damage": _timestamps_damage, "box_table_damage": _box_table_damage}
+
+
+def mutate(directory: str, kind: str, rng: np.random.Generator) -> tuple[str, str]:
+    """Damages one file of a (copied) clean sequence in place: (path of the damaged file, what was done)."""
+    if kind not in _MUTATIONS:
+        raise ValueError(f"unknown files mutation kind {kind!r}; one of {KINDS}")
+    return _MUTATIONS[kind](directory, kind, rng)
 
 
 def _input_bytes(directory: str) -> int:

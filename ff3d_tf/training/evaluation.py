@@ -230,6 +230,69 @@ class _Skipping:
         return self.predictor.predict(batch, example)
 
 
+def _submission_selection(lay, masks: str | None, archive) -> tuple[str, list[str]]:
+    """What chooses a submission's sweeps and rows in layout `lay`, in words, and the notes a user must read."""
+    if not lay.masks_choose_sweeps:
+        return "the 2024 evaluator's sweeps (indices 0, 5, 10, ... of each log), every point" + (
+            f"; logs and point counts checked against {masks}" if masks else ""), []
+    if archive is not None:
+        return f"the sweeps{' and rows' if lay.mask_rows else ''} of the official masks {masks}", []
+    rows = " and rows (|x|, |y| <= 50 m, not ground)" if lay.mask_rows else ""
+    return "av2-api's rule as this project computes it, for local validation only", [
+        f"NOTE: no --masks: the sweeps (every 5th pair){rows} follow av2-api's rule as this project computes it, for "
+        f"local validation only; a leaderboard checks the official masks' sweeps and row counts "
+        f"({av2_submission.MASKS_SOURCE})"]
+
+
+def _submission_resume_state(plan, parts: str) -> tuple[dict, dict, dict]:
+    """The plan's sweeps sorted by what an interrupted run left under `parts`: (expected {entry: rows} of those
+    written whose rows the plan knows, checked with the archive; todo {(log id, timestamp): sweep} of those not written
+    yet; kept {(log id, timestamp): sweep} of those written under av2-api's rule, checked when their pair is read)."""
+    expected, todo, kept = {}, {}, {}
+    for p in plan:
+        if not os.path.exists(os.path.join(parts, *p.entry.split("/"))):
+            todo[(p.log_id, p.timestamp_ns)] = p
+        elif p.rows is not None:
+            expected[p.entry] = p.rows  # checked with the archive
+        else:
+            kept[(p.log_id, p.timestamp_ns)] = p
+    return expected, todo, kept
+
+
+def _write_submission_sweeps(cfg, files, predictor, lay, archive, parts: str, todo: dict, kept: dict, expected: dict,
+                             log_fn) -> None:
+    """Predicts and writes every sweep of `todo` under `parts` and checks the rows of every sweep of `kept`, adding
+    each one's entry and rows to `expected`; a planned sweep whose record is not read back is an error."""
+    for ex, flow_pred, _, _ in av2_challenge_examples(cfg, files, _Skipping(predictor, set(kept)), 0, log_fn,
+                                                      set(todo) | set(kept), inference_only=True):
+        key = _sweep_key(ex)
+        points = ex["points_xyz_t0"]
+        if key in kept:  # av2-api's rule: the interrupted run's file must have the rule's rows
+            p = kept.pop(key)
+            path = os.path.join(parts, *p.entry.split("/"))
+            have = len(av2_submission.read_sweep_file(path, lay)[lay.columns[0]])
+            want = int(av2_submission.av2_api_rule_mask(points, ex["is_ground_t0"]).sum())
+            if have != want:
+                raise av2_submission.SubmissionFormatError(
+                    path, "rows", f"{have} rows, av2-api's rule selects {want}: written by an earlier run with "
+                    f"other masks; remove {parts} to write it again")
+            expected[p.entry] = have
+            continue
+        p = todo.pop(key)
+        rows = None
+        if lay.mask_rows:
+            rows = archive.checked_mask(key, len(points), p.where) if archive is not None else \
+                av2_submission.av2_api_rule_mask(points, ex["is_ground_t0"])
+        ego1_from_ego0 = geometry.t0_from_tm1_np(ex["pose_tm1"], ex["pose_t0"])  # partner (next sweep) <- t0
+        columns = av2_submission.sweep_columns(lay, points, challenge_flow_m(flow_pred, ex), ego1_from_ego0, rows)
+        av2_submission.write_sweep(parts, lay, p.entry, columns)
+        expected[p.entry] = len(columns[lay.columns[0]])
+    missing = {**todo, **kept}
+    if missing:
+        p = next(iter(missing.values()))
+        raise ValueError(f"{p.where}: the record of {p.log_id}/{p.timestamp_ns} was listed but not read back")
+
+
 def write_av2_submission(cfg: ExperimentConfig, files: list[str], predictor: Predictor, out_zip: str,
                          leaderboard: str, split: str, masks: str | None = None, format_json: str | None = None,
                          max_pairs: int = 0, supervised: bool = True, log_fn=print) -> dict:
@@ -250,21 +313,10 @@ def write_av2_submission(cfg: ExperimentConfig, files: list[str], predictor: Pre
     if masks is None and split == "test":
         raise ValueError("a test submission needs the official masks (--masks TEST_MASKS.zip): the leaderboards "
                          f"evaluate their points only; {av2_submission.MASKS_SOURCE}")
-    notes = []
     archive = av2_submission.MaskArchive(masks) if masks else None
     try:
         plan = av2_submission.plan_submission(lay, list_av2_record_sweeps(cfg, files), archive)
-        if not lay.masks_choose_sweeps:
-            selection = "the 2024 evaluator's sweeps (indices 0, 5, 10, ... of each log), every point" + (
-                f"; logs and point counts checked against {masks}" if masks else "")
-        elif archive is not None:
-            selection = f"the sweeps{' and rows' if lay.mask_rows else ''} of the official masks {masks}"
-        else:
-            selection = "av2-api's rule as this project computes it, for local validation only"
-            rows = " and rows (|x|, |y| <= 50 m, not ground)" if lay.mask_rows else ""
-            notes.append(f"NOTE: no --masks: the sweeps (every 5th pair){rows} follow av2-api's rule as this project "
-                         "computes it, for local validation only; a leaderboard checks the official masks' sweeps "
-                         f"and row counts ({av2_submission.MASKS_SOURCE})")
+        selection, notes = _submission_selection(lay, masks, archive)
         if max_pairs:
             plan = plan[:max_pairs]
             notes.append(f"NOTE: --max_pairs {max_pairs}: a partial archive of {len(plan)} sweeps, not a submission")
@@ -277,47 +329,11 @@ def write_av2_submission(cfg: ExperimentConfig, files: list[str], predictor: Pre
                 format_rows = {e: n for e, n in format_rows.items() if e in {p.entry for p in plan}}
             av2_submission.check_against_format_json(lay, {p.entry: p.rows for p in plan}, format_rows, format_json)
         parts = out_zip + ".parts"
-        expected, todo, kept = {}, {}, {}
-        for p in plan:
-            path = os.path.join(parts, *p.entry.split("/"))
-            if not os.path.exists(path):
-                todo[(p.log_id, p.timestamp_ns)] = p
-            elif p.rows is not None:
-                expected[p.entry] = p.rows  # written by an interrupted run; checked with the archive
-            else:  # written by an interrupted run; its rows are checked against av2-api's rule below
-                kept[(p.log_id, p.timestamp_ns)] = p
+        expected, todo, kept = _submission_resume_state(plan, parts)
         log_fn(f"{len(plan)} sweeps in layout {lay.name} ({lay.leaderboard}); {len(plan) - len(todo)} already "
                f"written under {parts}")
         t0 = time.time()
-        for ex, flow_pred, _, _ in av2_challenge_examples(cfg, files, _Skipping(predictor, set(kept)), 0, log_fn,
-                                                          set(todo) | set(kept), inference_only=True):
-            key = _sweep_key(ex)
-            points = ex["points_xyz_t0"]
-            if key in kept:  # av2-api's rule: the interrupted run's file must have the rule's rows
-                p = kept.pop(key)
-                path = os.path.join(parts, *p.entry.split("/"))
-                have = len(av2_submission.read_sweep_file(path, lay)[lay.columns[0]])
-                want = int(av2_submission.av2_api_rule_mask(points, ex["is_ground_t0"]).sum())
-                if have != want:
-                    raise av2_submission.SubmissionFormatError(
-                        path, "rows", f"{have} rows, av2-api's rule selects {want}: written by an earlier run with "
-                        f"other masks; remove {parts} to write it again")
-                expected[p.entry] = have
-                continue
-            p = todo.pop(key)
-            rows = None
-            if lay.mask_rows:
-                rows = archive.checked_mask(key, len(points), p.where) if archive is not None else \
-                    av2_submission.av2_api_rule_mask(points, ex["is_ground_t0"])
-            ego1_from_ego0 = geometry.t0_from_tm1_np(ex["pose_tm1"], ex["pose_t0"])  # partner (next sweep) <- t0
-            columns = av2_submission.sweep_columns(lay, points, challenge_flow_m(flow_pred, ex), ego1_from_ego0,
-                                                   rows)
-            av2_submission.write_sweep(parts, lay, p.entry, columns)
-            expected[p.entry] = len(columns[lay.columns[0]])
-        missing = {**todo, **kept}
-        if missing:
-            p = next(iter(missing.values()))
-            raise ValueError(f"{p.where}: the record of {p.log_id}/{p.timestamp_ns} was listed but not read back")
+        _write_submission_sweeps(cfg, files, predictor, lay, archive, parts, todo, kept, expected, log_fn)
         log_fn(f"{len(plan)} sweeps written in {time.time() - t0:.0f} s; zipping and checking {out_zip}")
         if format_rows is not None and lay.mask_rows:
             expected = format_rows  # Argoverse's validator: every entry of the JSON with its row count
