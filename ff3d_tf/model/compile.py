@@ -22,12 +22,14 @@ only: TF_ENABLE_ONEDNN_OPTS=1 on an AMD Zen 3 or an Intel Haswell to Comet Lake)
 kernels, TensorFlow's default on an AVX2-only CPU and the project's start-up choice there,
 `ff3d_tf.cpu.startup_environment`). The rule of each entry and its measurement:
   onednn_avx512  hybrid for both jobs, the fastest forward there (benchmarks/latency_cpu.json);
-  eigen          per job, the mode with the lowest peak memory (in the start-up's environment for the job,
-                 `ff3d_tf.cpu.AVX2_STARTUP`): xla for the training step, hybrid for the forward; `none` and `hybrid` train faster there
-                 but hold more memory (benchmarks/cpu_step_avx2.json, "after", tools/benchmark_cpu_step.py with both
-                 libraries capped to AVX2; docs/benchmarks.md, "The training step on AVX2-only CPUs");
-  onednn_avx2    xla for both jobs: measured with `tools/benchmark_cpu_step.py --settings after_onednn`, a run whose
-                 file is not among benchmarks/.
+  eigen          per job, in the start-up's environment for the job (`ff3d_tf.cpu.AVX2_STARTUP`): to train, the
+                 mode with the lowest peak memory, xla (also the fastest step there); to serve, the fastest forward,
+                 hybrid (xla holds a little less) (benchmarks/cpu_step_avx2.json, "after",
+                 tools/benchmark_cpu_step.py with both libraries capped to AVX2; docs/benchmarks.md, "The training
+                 step on AVX2-only CPUs");
+  onednn_avx2    xla for both jobs: for training the fastest step there, though `none` holds less memory
+                 (benchmarks/cpu_step_avx2_onednn.json, `tools/benchmark_cpu_step.py --settings after_onednn --jobs
+                 train`); for the forward, not measured.
 
 The mode lives on the model (`FastFlow3D.compile_mode`, set by `build_model`) and applies whenever the model is traced
 into a `tf.function`, whatever that function's own `jit_compile`. A caller that compiles the whole call with XLA
