@@ -6,8 +6,8 @@ python tools/benchmark_heads.py [--out_dir heads_out] [--json benchmarks/heads_s
     [--formats wod,av2] [--train_segments 3 --eval_segments 2 --frames_per_segment 5 --lidar_scale 0.25
      --av2_points_per_sweep 6000] [--config configs/synthetic_cpu.yaml] [--set key=value ...]
 
-Variants (ff3d_tf/training/heads_benchmark.py VARIANTS): paper_l2, gru_l2, gru_deflow, gru_deltaflow,
-gru_deflow_augment (data.augment_height_offset_prob and data.augment_flip_prob 0.5).
+Variants (ff3d_tf/training/heads_benchmark.py VARIANTS): paper_l2, gru_l2, gru_deflow, gru_deltaflow, gru2_deltaflow
+(model.gru_iterations=2), gru_deflow_augment (data.augment_height_offset_prob and data.augment_flip_prob 0.5).
 
 Stages, per data format (WOD first, then Argoverse 2), each one of the project's tools as a subprocess:
 1. synthetic data, training and held-out (`tools/make_synthetic_data.py`, different seeds);

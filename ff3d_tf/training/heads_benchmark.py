@@ -39,11 +39,12 @@ VARIANTS = {
     "gru_l2": ("model.head=gru", "train.loss=l2"),
     "gru_deflow": ("model.head=gru", "train.loss=deflow"),
     "gru_deltaflow": ("model.head=gru", "train.loss=deltaflow"),
+    "gru2_deltaflow": ("model.head=gru", "model.gru_iterations=2", "train.loss=deltaflow"),
     "gru_deflow_augment": ("model.head=gru", "train.loss=deflow") + AUGMENT_SETS,
 }
 VARIANT_NAMES = {"paper_l2": "paper head + L2", "gru_l2": "GRU head + L2", "gru_deflow": "GRU head + DeFlow loss",
-                 "gru_deltaflow": "GRU head + DeltaFlow loss", "gru_deflow_augment": "GRU + DeFlow + augmentation",
-                 "zero_flow": "zero flow"}
+                 "gru_deltaflow": "GRU head + DeltaFlow loss", "gru2_deltaflow": "GRU (2 iterations) + DeltaFlow loss",
+                 "gru_deflow_augment": "GRU + DeFlow + augmentation", "zero_flow": "zero flow"}
 SPLIT_SEEDS = {"train": 100, "eval": 900}  # make_synthetic_data.py --seed of each split
 # The headline figures: {name: the key in the eval's metrics of each protocol (WOD: paper, AV2: av2)}.
 HEADLINE_KEYS = {
