@@ -333,7 +333,7 @@ class UpsampleSkip(keras.layers.Layer):
         self.depth, self.bottleneck_depth = int(depth), int(bottleneck_depth)
         conv = dict(use_bias=False, padding="same", kernel_initializer="glorot_uniform")
         self.u1 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U1", **conv)
-        self.u2 = BilinearUpsample2x(name="U2", dtype="float32")  # float32 also under mixed precision, as before
+        self.u2 = BilinearUpsample2x(name="U2", dtype="float32")  # float32 also under mixed precision
         self.u3 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U3", **conv)
         self.u5 = keras.layers.Conv2D(self.depth, 3, name="U5", **conv)
         self.u6 = keras.layers.Conv2D(self.depth, 3, name="U6", **conv)

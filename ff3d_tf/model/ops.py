@@ -129,8 +129,6 @@ def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segme
     return sums, (tf.reshape(rows[0], [-1, rows[0].shape[-1]])[:total] if rows else None)
 
 
-
-
 def _double_axis(x, axis):
     """Bilinear x2 along one spatial `axis` of x, half-pixel centres, edges clamped: output 2i samples input i - 1/4
     (0.75 x[i] + 0.25 x[i-1]) and output 2i+1 samples i + 1/4 (0.75 x[i] + 0.25 x[i+1]), x[-1] and x[n] read as the

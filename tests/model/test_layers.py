@@ -192,7 +192,7 @@ def _bilinear_2x_matrix(n):
 
 @pytest.mark.parametrize("shape", [(2, 1, 1, 3), (1, 2, 3, 4), (2, 7, 5, 3)])
 def test_bilinear_upsample_2x_matches_numpy_and_keras(shape):
-    """Values: the interpolation matrices in NumPy (and Keras's bilinear UpSampling2D, row U2's layer before);
+    """Values: the interpolation matrices in NumPy (and Keras's bilinear UpSampling2D, the same interpolation);
     gradient: the matrices' transposes, up^T(g) = M_h^T g M_w, in eager TensorFlow and in one XLA program."""
     _, h, w, _ = shape
     x = RNG.normal(0, 1, shape).astype(np.float32)
