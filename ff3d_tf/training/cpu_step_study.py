@@ -171,6 +171,34 @@ def stage_times(cfg, mode: str, labelled: dict, runs: int) -> dict:
     return out
 
 
+def _dense_and_point_variables(model) -> tuple[list, list]:
+    """The model's trainable variables of rows C-V, and the rest (rows A, Y, Z or the GRU head)."""
+    dense_vars = [v for layer in [b for s in model.encoder_stages for b in s] + model.upsample_skips + [model.conv_v]
+                  for v in layer.trainable_variables]
+    dense_ids = {id(v) for v in dense_vars}
+    return dense_vars, [v for v in model.trainable_variables if id(v) not in dense_ids]
+
+
+def _optimizer_part(cfg, model) -> tuple:
+    """(compiled function, its arguments): the step's update on `model`'s weights, global norm, clipping as `cfg`
+    says and Adam (`step.adam_update`), from a fresh optimizer state and small constant gradients."""
+    import tensorflow as tf
+    from ff3d_tf.model import step as step_lib
+    weights = model.trainable_variables
+    state = step_lib.TrainState([v.value for v in weights], [v.value for v in model.non_trainable_variables],
+                                [tf.zeros_like(v) for v in weights], [tf.zeros_like(v) for v in weights],
+                                tf.constant(0, tf.int64))
+    grads = [tf.ones_like(v) * 1e-3 for v in weights]
+
+    def optimizer(state, grads):
+        norm = tf.linalg.global_norm(grads)
+        if cfg.train.grad_clip_norm is not None:
+            grads, _ = tf.clip_by_global_norm(grads, cfg.train.grad_clip_norm, use_norm=norm)
+        return list(step_lib.adam_update(cfg, state, grads))
+
+    return tf.function(optimizer), (state, grads)
+
+
 def step_parts(cfg, mode: str, labelled: dict) -> dict:
     """{part: (compiled function, its arguments)}: the parts of a training step in compile `mode` on `labelled`:
 
@@ -187,7 +215,6 @@ def step_parts(cfg, mode: str, labelled: dict) -> dict:
     from ff3d_tf.config import replace_config
     from ff3d_tf.model import build_model
     from ff3d_tf.model import compile as compile_lib
-    from ff3d_tf.model import step as step_lib
     from ff3d_tf.model.forward import model_inputs
     from ff3d_tf.model.losses import batch_flow_loss
     cfg1 = replace_config(cfg, {"train.global_batch_size": 1})
@@ -207,10 +234,7 @@ def step_parts(cfg, mode: str, labelled: dict) -> dict:
 
     encoded0 = tf.function(encode, jit_compile=xla)(inputs)
     grid0 = tf.function(lambda b: model.dense_stages(b, True), jit_compile=xla)(encoded0["bev_features"])
-    dense_vars = [v for layer in [b for s in model.encoder_stages for b in s] + model.upsample_skips + [model.conv_v]
-                  for v in layer.trainable_variables]
-    dense_ids = {id(v) for v in dense_vars}
-    point_vars = [v for v in model.trainable_variables if id(v) not in dense_ids]  # rows A, Y, Z (or the GRU head)
+    dense_vars, point_vars = _dense_and_point_variables(model)
 
     def point_fb(x, grid):
         with tf.GradientTape() as tape:
@@ -226,18 +250,6 @@ def step_parts(cfg, mode: str, labelled: dict) -> dict:
             total = tf.reduce_sum(tf.cast(model.dense_stages(bev, True), tf.float32))
         return tape.gradient(total, dense_vars + [bev])
 
-    state = step_lib.TrainState([v.value for v in model.trainable_variables],
-                                [v.value for v in model.non_trainable_variables],
-                                [tf.zeros_like(v) for v in model.trainable_variables],
-                                [tf.zeros_like(v) for v in model.trainable_variables], tf.constant(0, tf.int64))
-    grads = [tf.ones_like(v) * 1e-3 for v in model.trainable_variables]
-
-    def optimizer(state, grads):
-        norm = tf.linalg.global_norm(grads)
-        if cfg.train.grad_clip_norm is not None:
-            grads, _ = tf.clip_by_global_norm(grads, cfg.train.grad_clip_norm, use_norm=norm)
-        return list(step_lib.adam_update(cfg1, state, grads))
-
     flow0 = decode(grid0, encoded0)
 
     def loss_fb(flow):
@@ -252,7 +264,7 @@ def step_parts(cfg, mode: str, labelled: dict) -> dict:
             "conv_forward": (tf.function(lambda b: model.dense_stages(b, True), jit_compile=xla),
                              (encoded0["bev_features"],)),
             "conv_forward_backward": (tf.function(conv_fb, jit_compile=xla), (encoded0["bev_features"],)),
-            "optimizer": (tf.function(optimizer), (state, grads)),
+            "optimizer": _optimizer_part(cfg1, model),
             "loss": (tf.function(loss_fb, jit_compile=xla), (flow0["flow_mps"],))}
 
 
