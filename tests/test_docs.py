@@ -893,6 +893,43 @@ CPU_TARGETS_TABLE = Table(
              V(_CS, "targets/forward_1m_over_32k"), "{:.2f}", False)))
 TABLES += (CPU_STEP_TABLE, CPU_STAGES_TABLE, CPU_FORWARD_TABLE, CPU_TARGETS_TABLE)
 
+# -- the encoder recomputed in the backward (benchmark_cpu_step.py --settings before,after,after_remat)
+_RM = "cpu_step_avx2_remat.json"
+_RM_SETTINGS = (("before", "before (TensorFlow's own start-up, `auto` = hybrid)", ()),
+                ("after", "after (the tools' start-up, `auto` per job)", ()),
+                ("after_remat", "after, `model.remat_encoder=true`", ("after_remat",)))
+
+
+def _rm_projected(prefix, key, fmt):
+    """A projected figure of `projection_zen3` (the after_remat setting's under its own key); "the issue's" figure
+    for "before"."""
+    if prefix is None:
+        return V(_RM, ("peer", "ff3d_tf_before", key), fmt)
+    return V(_RM, ("projection_zen3",) + prefix + (key,), fmt)
+
+
+REMAT_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_cpu_step.py --jobs train --modes auto --settings before,after,after_remat --rounds "
+                "{} --no_stages` (`benchmarks/cpu_step_avx2_remat.json`), paper config, {} points, batch 1, medians "
+                "over the rounds of the median of {} steps after {} warm-up steps; {} ({} cores), oneDNN and XLA "
+                "capped to AVX2 (`zen3`); projected = the issue's Zen 3 figures of ff3d_tf before scaled by this "
+                "run's ratios to its own \"before\":",
+             (V(_RM, "rounds"), V(_RM, "train_points", "{:,}"), V(_RM, "steps"), V(_RM, "warmup"),
+              V(_RM, "cpu/model_name"), V(_RM, "cpu/cpu_count"))),
+    ("setting", "runs", "step", "CPU", "peak", "projected step", "projected: over the peer", "projected peak"),
+    "llrrrrrr",
+    tuple((label, V(_RM, ("summary", "train/auto", setting, "mode")),
+           V(_RM, ("summary", "train/auto", setting, "step_median_ms"), "{:,.0f} ms"),
+           V(_RM, ("summary", "train/auto", setting, "step_cpu_median_ms"), "{:,.0f} ms"),
+           V(_RM, ("summary", "train/auto", setting, "peak_rss_gb"), "{:.2f} GB"),
+           _rm_projected(None if setting == "before" else prefix, "train_step_32000_ms", "{:,.0f} ms"),
+           Calc("{:.2f}x", lambda peer, ms: peer / ms,
+                (V(_RM, "peer/peer/train_step_32000_ms"),
+                 _rm_projected(None if setting == "before" else prefix, "train_step_32000_ms", "{}"))),
+           _rm_projected(None if setting == "before" else prefix, "train_step_32000_peak_gb", "{:.2f} GB"))
+          for setting, label, prefix in _RM_SETTINGS))
+TABLES += (REMAT_TABLE,)
+
 # -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
 _HC = "head_cost_cpu.json"
 QUOTES += (

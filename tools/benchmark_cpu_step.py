@@ -8,7 +8,8 @@ python tools/benchmark_cpu_step.py --out benchmarks/cpu_step_avx2.json [--config
 --cap names the ISA caps of `ff3d_tf.cpu.EMULATIONS` every child runs under (zen3: oneDNN and XLA capped to AVX2, as
 on an AMD Zen 3); "before" is the process as TensorFlow starts it there and the point stages as they were, "after" the
 start-up environment of `ff3d_tf.cpu.startup_environment` for the job and the point stages' per-cloud programs,
-"after_onednn" that with TensorFlow's oneDNN operations on. Each figure is this machine's under the caps;
+"after_onednn" that with TensorFlow's oneDNN operations on, "after_remat" that with model.remat_encoder=true (the
+encoder's activations recomputed in the backward). Each figure is this machine's under the caps;
 `projection_zen3` scales the issue's Zen 3 figures by its ratios.
 """
 import json

@@ -53,12 +53,15 @@ class FastFlow3D(keras.Model):
     `head`: "paper" (rows W-Z: `head_y`, `head_z`) or "gru" (`head_gru`: DeFlow's GRU point decoder, its hidden state
     the point's pillar embedding of both clouds and the decoder's output there, 3C wide; its input the offset from the
     pillar centre encoded to C values; `gru_iterations` steps; an MLP of `head_hidden_dim` hidden units to the flow).
+    `remat_encoder`: in training, each encoder stage's activations are recomputed in the backward pass from its input
+    (`_rematerialized_stage`) instead of held; the values are the same.
     """
 
     # Keyword-only, the paper's values without defaults: they live in `ff3d_tf.config` alone (`model_kwargs`).
     def __init__(self, *, num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, point_feature_dim,
                  encoder_widths, encoder_depths, decoder_dims, head_hidden_dim, zero_init_output=False,
-                 compile_mode="none", point_chunk_size=ops.POINT_CHUNK, head="paper", gru_iterations=4, **kwargs):
+                 compile_mode="none", point_chunk_size=ops.POINT_CHUNK, head="paper", gru_iterations=4,
+                 remat_encoder=False, **kwargs):
         super().__init__(**kwargs)
         self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
         self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
@@ -73,6 +76,7 @@ class FastFlow3D(keras.Model):
         if head not in ("paper", "gru"):
             raise ValueError(f"head={head!r}: paper or gru")
         self.head, self.gru_iterations = head, int(gru_iterations)
+        self.remat_encoder = bool(remat_encoder)
 
         # The point stages in float32 under any global policy: pillar indices and offsets (a bfloat16 x would move
         # points across pillars), the point encoder and its pillar sums, and the head. XLA's CPU backend has no
@@ -198,8 +202,11 @@ class FastFlow3D(keras.Model):
         x = tf.cast(bev_features, self.conv_dtype)
         skips = [x]
         for stage in self.encoder_stages:
-            for block in stage:
-                x = block(x, training=training)
+            if training and self.remat_encoder:
+                x = _rematerialized_stage(stage, x)
+            else:
+                for block in stage:
+                    x = block(x, training=training)
             skips.append(x)
 
         def both(t):  # [2B,h,w,c] -> [B,h,w,2c], t0 first (split: its gradient is a concat, no zero-filled grids)
@@ -257,7 +264,29 @@ class FastFlow3D(keras.Model):
                 "encoder_depths": self.encoder_depths, "decoder_dims": self.decoder_dims,
                 "head_hidden_dim": self.head_hidden_dim, "zero_init_output": self.zero_init_output,
                 "compile_mode": self.compile_mode, "point_chunk_size": self.point_chunk_size, "head": self.head,
-                "gru_iterations": self.gru_iterations}
+                "gru_iterations": self.gru_iterations, "remat_encoder": self.remat_encoder}
+
+
+def _rematerialized_stage(stage: list, x):
+    """An encoder stage (ConvBlocks) in training whose activations the backward pass recomputes from the stage's input
+    `x` instead of holding them (`tf.recompute_grad`: the recomputation waits on the stage's output gradient, so XLA
+    neither merges it with the forward's run nor schedules it early). Only the forward's run assigns the moving
+    statistics."""
+    forward_run = [True]
+
+    def run(x):
+        batches = []
+        for block in stage:
+            with tf.name_scope(block.name):
+                x, batch = block.forward(x, training=True)
+            batches.append(batch)
+        if forward_run[0]:
+            forward_run[0] = False
+            for block, batch in zip(stage, batches):
+                if batch is not None:
+                    block.update_moving_statistics(*batch)
+        return x
+    return tf.recompute_grad(run)(x)
 
 
 def model_kwargs(cfg: ExperimentConfig) -> dict:
@@ -267,7 +296,7 @@ def model_kwargs(cfg: ExperimentConfig) -> dict:
                 y_range_m=g.y_range_m, z_range_m=g.z_range_m, point_feature_dim=m.point_feature_dim,
                 encoder_widths=m.encoder_widths, encoder_depths=m.encoder_depths, decoder_dims=m.decoder_dims,
                 head_hidden_dim=m.head_hidden_dim, zero_init_output=m.zero_init_output, head=m.head,
-                gru_iterations=m.gru_iterations)
+                gru_iterations=m.gru_iterations, remat_encoder=m.remat_encoder)
 
 
 def build_model(cfg: ExperimentConfig, compile_mode: str | None = None,

@@ -282,6 +282,15 @@ class ConvBlock(keras.layers.Layer):
         self.bn.build(self.conv.compute_output_shape(input_shape))
 
     def call(self, x, training=False):
+        y, statistics = self.forward(x, training)
+        if statistics is not None:
+            self.update_moving_statistics(*statistics)
+        return y
+
+    def forward(self, x, training=False):
+        """(the block's output, the batch's (mean, variance) for the moving statistics, or None when they are not
+        updated): `call` without the update, so a recomputation of the block (`FastFlow3D.remat_encoder`) assigns
+        nothing."""
         bn = self.bn
         y = self.conv(x)
         gamma, beta = tf.cast(bn.gamma, tf.float32), tf.cast(bn.beta, tf.float32)
@@ -290,15 +299,17 @@ class ConvBlock(keras.layers.Layer):
             # The op's batch variance carries Bessel's correction n / (n - 1) (n = B*H*W values per channel; 8e-6 to
             # 1.2e-4 relative at batch 1 on the paper grid); Keras's moving variance is the plain E[(y - mean)^2].
             n = tf.cast(tf.reduce_prod(tf.shape(y)[:-1]), tf.float32)
-            variance = variance * ((n - 1.0) / tf.maximum(n, 1.0))
-            m = bn.momentum
-            bn.moving_mean.assign(tf.cast(bn.moving_mean, tf.float32) * m + mean * (1.0 - m))
-            bn.moving_variance.assign(tf.cast(bn.moving_variance, tf.float32) * m + variance * (1.0 - m))
-        else:
-            y, _, _ = internals.fused_batch_norm(y, gamma, beta, epsilon=bn.epsilon, training=False,
-                                                 mean=tf.cast(bn.moving_mean, tf.float32),
-                                                 variance=tf.cast(bn.moving_variance, tf.float32))
-        return tf.nn.relu(y)
+            return tf.nn.relu(y), (mean, variance * ((n - 1.0) / tf.maximum(n, 1.0)))
+        y, _, _ = internals.fused_batch_norm(y, gamma, beta, epsilon=bn.epsilon, training=False,
+                                             mean=tf.cast(bn.moving_mean, tf.float32),
+                                             variance=tf.cast(bn.moving_variance, tf.float32))
+        return tf.nn.relu(y), None
+
+    def update_moving_statistics(self, mean, variance):
+        """Keras's moving averages of `forward`'s batch statistics."""
+        bn, m = self.bn, self.bn.momentum
+        bn.moving_mean.assign(tf.cast(bn.moving_mean, tf.float32) * m + mean * (1.0 - m))
+        bn.moving_variance.assign(tf.cast(bn.moving_variance, tf.float32) * m + variance * (1.0 - m))
 
     def compute_output_shape(self, input_shape):
         return self.conv.compute_output_shape(input_shape)

@@ -10,7 +10,9 @@ Every reading comes from a fresh child process (`ff3d_tf.children.run_child`, pi
             "after": the start-up environment the tools choose for the job (`ff3d_tf.cpu.startup_environment`, under
             the same ISA caps), the clouds' point programs apart ("per_cloud"), `auto` by
             `compile_lib.resolve_compile_mode` for the job;
-            "after_onednn" (on request): "after" with TensorFlow's oneDNN operations on.
+            "after_onednn" (on request): "after" with TensorFlow's oneDNN operations on;
+            "after_remat" (on request): "after" with the encoder's activations recomputed in the backward
+            (`model.remat_encoder=true`).
   job       "train" (the Trainer's own step: forward, loss, backward, Adam; batch 1, the process's peak resident
             memory) or "forward" (the compiled forward at each point count, in one process, round robin).
   mode      `model.compile`: auto, hybrid, xla, none.
@@ -36,7 +38,9 @@ SETTINGS = ("before", "after")
 # A setting measured on request (--settings): "after" with TensorFlow's oneDNN operations on (TF_ENABLE_ONEDNN_OPTS=1,
 # what the start-up does not choose on an AVX2-only CPU): the measurement behind that choice and behind
 # `compile_lib.AUTO_CPU`'s "onednn_avx2" entries.
-ALL_SETTINGS = SETTINGS + ("after_onednn",)
+# "after_remat": "after" with `model.remat_encoder=true` (REMAT_OVERRIDE), the training memory it saves and its time.
+ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat")
+REMAT_OVERRIDE = "model.remat_encoder=true"
 JOBS = ("train", "forward")
 MODES = ("auto", "hybrid", "xla", "none")
 # The PyTorch FastFlow3D peer and ff3d_tf before this change as the issue measured them on an AMD Zen 3, and the
@@ -68,7 +72,7 @@ def variant_environment(setting: str, job: str, cap: str, base: Mapping | None =
     knobs = {k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS)
     env = {k: v for k, v in base.items() if k not in knobs}
     caps = dict(cpu.EMULATIONS[cap]) if cap != NO_CAP else {}
-    if setting in ("after", "after_onednn"):
+    if setting != "before":
         caps.pop("TF_ENABLE_ONEDNN_OPTS", None)
         caps.update(cpu.startup_environment(STARTUP_JOB[job], environ=caps))
     if setting == "after_onednn":
@@ -305,6 +309,22 @@ def stage_summary(stages: Mapping, step_ms: float) -> dict:
     return out
 
 
+def _train_projection(measured_before: Mapping, measured: Mapping, before: Mapping, peer: Mapping) -> dict:
+    """The issue's training step figures of ff3d_tf before, scaled by `measured` over `measured_before`."""
+    ratio = measured["step_median_ms"] / measured_before["step_median_ms"]
+    out = {"train_step_32000_ms": before["train_step_32000_ms"] * ratio}
+    out["train_step_speedup_over_peer"] = peer["train_step_32000_ms"] / out["train_step_32000_ms"]
+    if measured_before.get("step_cpu_median_ms") and measured.get("step_cpu_median_ms"):
+        # By CPU time (user + system, all threads): less moved by other load on a shared machine than wall time.
+        cpu_ratio = measured["step_cpu_median_ms"] / measured_before["step_cpu_median_ms"]
+        out["train_step_32000_ms_by_cpu_time"] = before["train_step_32000_ms"] * cpu_ratio
+        out["train_step_speedup_over_peer_by_cpu_time"] = (peer["train_step_32000_ms"] /
+                                                           out["train_step_32000_ms_by_cpu_time"])
+    mem = measured["peak_rss_gb"] / measured_before["peak_rss_gb"]
+    out["train_step_32000_peak_gb"] = before["train_step_32000_peak_gb"] * mem
+    return out
+
+
 def projection(summary: Mapping, figures: Mapping | None = None) -> dict:
     """The issue's Zen 3 figures of ff3d_tf before (`figures`, default `peer_figures()`), scaled by this run's
     after/before ratios (AVX2 caps), beside the peer's: what the change is expected to give on that CPU."""
@@ -316,17 +336,9 @@ def projection(summary: Mapping, figures: Mapping | None = None) -> dict:
         return row and all(s in row and "error" not in row[s] for s in SETTINGS)
     step, fwd = summary.get("train/auto"), summary.get("forward/auto")
     if both(step):
-        ratio = step["after"]["step_median_ms"] / step["before"]["step_median_ms"]
-        out["train_step_32000_ms"] = before["train_step_32000_ms"] * ratio
-        out["train_step_speedup_over_peer"] = peer["train_step_32000_ms"] / out["train_step_32000_ms"]
-        if step["before"].get("step_cpu_median_ms") and step["after"].get("step_cpu_median_ms"):
-            # By CPU time (user + system, all threads): less moved by other load on a shared machine than wall time.
-            cpu_ratio = step["after"]["step_cpu_median_ms"] / step["before"]["step_cpu_median_ms"]
-            out["train_step_32000_ms_by_cpu_time"] = before["train_step_32000_ms"] * cpu_ratio
-            out["train_step_speedup_over_peer_by_cpu_time"] = (peer["train_step_32000_ms"] /
-                                                               out["train_step_32000_ms_by_cpu_time"])
-        mem = step["after"]["peak_rss_gb"] / step["before"]["peak_rss_gb"]
-        out["train_step_32000_peak_gb"] = before["train_step_32000_peak_gb"] * mem
+        out.update(_train_projection(step["before"], step["after"], before, peer))
+        if "after_remat" in step and "error" not in step["after_remat"]:
+            out["after_remat"] = _train_projection(step["before"], step["after_remat"], before, peer)
     if both(fwd):
         for n in ("32000", "1000000"):
             if n in fwd["after"]["median_ms"]:
@@ -382,7 +394,8 @@ def study(config: str, overrides: Sequence[str], train_points: int, forward_poin
                                                 "mode": resolved}
             continue
         point_programs = "one" if setting == "before" else "per_cloud"
-        kwargs = {"config": config, "overrides": list(overrides), "mode": resolved, "warmup": warmup,
+        kwargs = {"config": config, "mode": resolved, "warmup": warmup,
+                  "overrides": list(overrides) + ([REMAT_OVERRIDE] if setting == "after_remat" else []),
                   "point_programs": point_programs}
         if job == "train":
             fn = f"{MODULE}:train_child"

@@ -20,6 +20,17 @@ def test_variant_environment_before_is_the_emulation_after_the_startup_rule():
         assert after["TF_ENABLE_ONEDNN_OPTS"] == cpu.AVX2_STARTUP["inference"]["TF_ENABLE_ONEDNN_OPTS"]
 
 
+def test_after_remat_is_after_with_the_encoder_recomputed(monkeypatch):
+    assert study.variant_environment("after_remat", "train", "zen3", {}) == \
+        study.variant_environment("after", "train", "zen3", {})
+    calls = []
+    monkeypatch.setattr(study.children, "run_child", lambda fn, kwargs, **kw: calls.append(kwargs) or {
+        "mode": kwargs["mode"], "onednn_enabled": False, "step_median_ms": 1.0, "peak_rss_gb": 1.0})
+    study.study("", ["train.seed=1"], 100, [100], ["xla"], ["train"], ["after", "after_remat"], "zen3", 1, 0, 1,
+                False, 1, 1, log_fn=lambda line: None)
+    assert [c["overrides"] for c in calls] == [["train.seed=1"], ["train.seed=1", study.REMAT_OVERRIDE]]
+
+
 def test_resolved_mode_per_setting_and_job():
     assert study.resolved_mode("before", "auto", "train", {}) == "hybrid"  # the rule before the per-job choice
     assert study.resolved_mode("after", "xla", "forward", {}) == "xla"
@@ -46,7 +57,8 @@ def _reading(ms, peak, mode="hybrid", medians=None):
 
 def test_summary_follows_aliases_and_projects_onto_zen3():
     variants = {
-        "train/auto": {"before": _reading(2000.0, 4.0), "after": _reading(1000.0, 3.0, "xla")},
+        "train/auto": {"before": _reading(2000.0, 4.0), "after": _reading(1000.0, 3.0, "xla"),
+                       "after_remat": _reading(1100.0, 2.0, "xla")},
         "train/xla": {"before": _reading(1500.0, 3.5, "xla"), "after": {"same_as": "train/auto", "mode": "xla"}},
         "forward/auto": {"before": _reading(0, 2.0, medians={"32000": 300.0, "1000000": 400.0}),
                          "after": _reading(0, 2.0, medians={"32000": 200.0, "1000000": 220.0})},
@@ -64,6 +76,10 @@ def test_summary_follows_aliases_and_projects_onto_zen3():
         peer["train_step_32000_ms"] / (before["train_step_32000_ms"] / 2))
     assert projected["train_step_32000_peak_gb"] == pytest.approx(before["train_step_32000_peak_gb"] * 0.75)
     assert projected["forward_1000000_ms"] == pytest.approx(before["forward_1000000_ms"] * 220 / 400)
+    # the encoder recomputed: its own ratios to "before", beside the after's
+    assert projected["after_remat"]["train_step_32000_ms"] == pytest.approx(before["train_step_32000_ms"] * 0.55)
+    assert projected["after_remat"]["train_step_32000_peak_gb"] == pytest.approx(
+        before["train_step_32000_peak_gb"] * 0.5)
     assert study.projection({"train/auto": {"before": {"error": True}}}) == {}
 
 

@@ -27,10 +27,14 @@ def _two_replicas():
     return tf.distribute.MirroredStrategy(["/cpu:0", "/cpu:1"])
 
 
-def test_two_replicas_equal_the_reference(tiny_segment, tiny_config, tmp_path):
+@pytest.mark.parametrize("remat", [False, True])
+def test_two_replicas_equal_the_reference(tiny_segment, tiny_config, tmp_path, remat):
+    """Also with the encoder's activations recomputed in the backward (`model.remat_encoder`), against a reference
+    that holds them."""
     cfg = replica_config(tiny_config)
     batch = batches(tiny_segment, cfg, 1)[0]
-    trainer = Trainer(cfg, str(tmp_path / "m"), [tiny_segment], strategy=_two_replicas(), log_fn=lambda s: None)
+    trainer = Trainer(replace_config(cfg, {"model.remat_encoder": remat}), str(tmp_path / "m"), [tiny_segment],
+                      strategy=_two_replicas(), log_fn=lambda s: None)
     assert trainer.strategy.num_replicas_in_sync == 2
     ref = Reference(cfg, trainer.model.get_weights())
     loss = float(trainer.step(_distributed(trainer.strategy, batch)))
