@@ -6,7 +6,9 @@
 #      step and per pair: the accelerator's input rate for the README's sizing table;
 #   3. what the device computes on fixed inputs against TensorFlow's results saved at export (flow, loss, gradient
 #      norm), so a wrong GPU lowering shows;
-#   4. when NSFP_DIR holds an export: NSFP's per-pair optimiser (distance grids and Adam steps, issue 18; the
+#   4. when GRU_DIR holds an export of the model with DeFlow's GRU head (`model.head=gru`, issue 28): 1-3 for it, its
+#      rows in their own JSON beside the paper head's;
+#   5. when NSFP_DIR holds an export: NSFP's per-pair optimiser (distance grids and Adam steps, issue 18; the
 #      pseudo-label job's two-sided fit) fitting 150K points and 37.5K (a 150K pair as the job fits it, every 4th
 #      point): seconds per step, per grid, per pair (the issue's target: <= 1 s per pair at 150K points), and its
 #      grids, loss and motion against TensorFlow's.
@@ -17,18 +19,22 @@
 #   python tools/export_xla.py --config configs/fastflow3d_waymo.yaml --points 32000,100000,255000,1000000 \
 #       --precisions float32,tf32,bfloat16 --train_points 177000 --train_batch_sizes 1,8 --reference \
 #       --out .devcarry/xla_paper                                            # random weights, ~35 MB
+# GRU_DIR (default .devcarry/xla_gru; skipped when absent) likewise, the same flags with --set model.head=gru and fewer
+# artifacts, so that all three exports travel within the device's 64 MiB:
+#   python tools/export_xla.py --config configs/fastflow3d_waymo.yaml --set model.head=gru --points 32000,1000000 \
+#       --precisions float32,bfloat16 --train_points 177000 --train_batch_sizes 1 --reference --out .devcarry/xla_gru
 # NSFP_DIR (default .devcarry/nsfp_xla; skipped when absent) likewise, ~3 minutes on 2 CPU cores (the reference: 50
 # of TensorFlow's steps at 37.5K points):
 #   python tools/export_nsfp_xla.py --points 150000,37500 --segment_steps 50 --precisions float32,tf32 \
 #       --reference_calls 1 --reference_points 37500 --out .devcarry/nsfp_xla   # synthetic pairs, ~3 MB
 # OUT_JSON defaults to $OUT/xla_latency_gpu.json where $OUT is set, else benchmarks/xla_latency_gpu.json; NSFP's to
-# nsfp_xla_gpu.json beside it. Both are rewritten after every artifact. Relative paths are from the repository root.
+# nsfp_xla_gpu.json and the GRU head's to xla_latency_gpu_gru.json beside it. Both are rewritten after every artifact. Relative paths are from the repository root.
 # The GPU machine needs python3 with jax[cuda], flatbuffers and numpy. Environment knobs: PYTHON (python3), RUNS (90)
 # and WARMUP (10) as in the paper's latency appendix, TRAIN_RUNS (30 training steps per artifact), LIMIT_S (510: the
 # whole script's runners are stopped within this), NSFP_LIMIT_S (180 of it for NSFP when NSFP_DIR is there; the model
 # gets the rest), BUDGET_S (300: no model artifact starts later; the rest are listed as skipped), NSFP_BUDGET_S (140:
 # the same for NSFP entries; float32 first, with the check), NSFP_PAIR_STEPS (500 Adam steps in a timed pair),
-# NSFP_PAIR_RUNS (2).
+# NSFP_PAIR_RUNS (2), GRU_LIMIT_S (120 of it for the GRU head when GRU_DIR is there), GRU_BUDGET_S (90).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 EXPORT_DIR=${1:-.devcarry/xla_paper}
@@ -46,6 +52,10 @@ NSFP_LIMIT_S=${NSFP_LIMIT_S:-180}
 NSFP_BUDGET_S=${NSFP_BUDGET_S:-140}
 NSFP_PAIR_STEPS=${NSFP_PAIR_STEPS:-500}
 NSFP_PAIR_RUNS=${NSFP_PAIR_RUNS:-2}
+GRU_DIR=${GRU_DIR:-.devcarry/xla_gru}
+GRU_JSON=${GRU_JSON:-$(dirname "$OUT_JSON")/xla_latency_gpu_gru.json}
+GRU_LIMIT_S=${GRU_LIMIT_S:-120}
+GRU_BUDGET_S=${GRU_BUDGET_S:-90}
 
 if [ ! -f "$EXPORT_DIR/manifest.json" ]; then
   echo "gpu_check: no $EXPORT_DIR/manifest.json; make it first with tools/export_xla.py (see the top of $0)" >&2
@@ -56,6 +66,11 @@ if [ -f "$NSFP_DIR/manifest.json" ]; then
   MODEL_LIMIT_S=$(( LIMIT_S - NSFP_LIMIT_S ))
 else
   echo "gpu_check: no $NSFP_DIR/manifest.json: NSFP is not timed (tools/export_nsfp_xla.py, see the top of $0)"
+fi
+if [ -f "$GRU_DIR/manifest.json" ]; then
+  MODEL_LIMIT_S=$(( MODEL_LIMIT_S - GRU_LIMIT_S ))
+else
+  echo "gpu_check: no $GRU_DIR/manifest.json: the GRU head is not timed (tools/export_xla.py, see the top of $0)"
 fi
 du -sh "$EXPORT_DIR"
 if command -v nvidia-smi >/dev/null; then
@@ -73,6 +88,13 @@ status=0
 timeout "$MODEL_LIMIT_S" "$PYTHON" tools/run_xla.py "$EXPORT_DIR" --runs "$RUNS" --warmup "$WARMUP" \
   --train_runs "$TRAIN_RUNS" --budget_s "$BUDGET_S" --out "$OUT_JSON" "$@" || status=$?
 echo "gpu_check: model runner exit status $status, results in $OUT_JSON"
+if [ -f "$GRU_DIR/manifest.json" ]; then
+  du -sh "$GRU_DIR"
+  timeout "$GRU_LIMIT_S" "$PYTHON" tools/run_xla.py "$GRU_DIR" --runs "$RUNS" --warmup "$WARMUP" \
+    --train_runs "$TRAIN_RUNS" --budget_s "$GRU_BUDGET_S" --out "$GRU_JSON" "$@" || gru_status=$?
+  echo "gpu_check: GRU head runner exit status ${gru_status:-0}, results in $GRU_JSON"
+  status=$(( status ? status : ${gru_status:-0} ))
+fi
 if [ -f "$NSFP_DIR/manifest.json" ]; then
   du -sh "$NSFP_DIR"
   timeout "$NSFP_LIMIT_S" "$PYTHON" tools/run_nsfp_xla.py "$NSFP_DIR" --pair_steps "$NSFP_PAIR_STEPS" \
