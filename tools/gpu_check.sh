@@ -6,7 +6,7 @@
 #      step and per pair: the accelerator's input rate for the README's sizing table;
 #   3. what the device computes on fixed inputs against TensorFlow's results saved at export (flow, loss, gradient
 #      norm), so a wrong GPU lowering shows;
-#   4. when GRU_DIR holds an export of the model with DeFlow's GRU head (`model.head=gru`, issue 28): 1-3 for it, its
+#   4. when GRU_DIR holds an export of the model with DeFlow's GRU head (`model.head=gru`, issue 28): 1-2 for it, its
 #      rows in their own JSON beside the paper head's;
 #   5. when NSFP_DIR holds an export: NSFP's per-pair optimiser (distance grids and Adam steps, issue 18; the
 #      pseudo-label job's two-sided fit) fitting 150K points and 37.5K (a 150K pair as the job fits it, every 4th
@@ -19,10 +19,11 @@
 #   python tools/export_xla.py --config configs/fastflow3d_waymo.yaml --points 32000,100000,255000,1000000 \
 #       --precisions float32,tf32,bfloat16 --train_points 177000 --train_batch_sizes 1,8 --reference \
 #       --out .devcarry/xla_paper                                            # random weights, ~35 MB
-# GRU_DIR (default .devcarry/xla_gru; skipped when absent) likewise, the same flags with --set model.head=gru and fewer
-# artifacts, so that all three exports travel within the device's 64 MiB:
+# GRU_DIR (default .devcarry/xla_gru; skipped when absent) likewise, with --set model.head=gru, fewer artifacts and no
+# reference (its 1M-point inputs would take the three exports past the 64 MiB a device call carries; the GRU head's
+# export is checked against TensorFlow on the CPU, tests/training/test_xla_step.py), ~22 MB:
 #   python tools/export_xla.py --config configs/fastflow3d_waymo.yaml --set model.head=gru --points 32000,1000000 \
-#       --precisions float32,bfloat16 --train_points 177000 --train_batch_sizes 1 --reference --out .devcarry/xla_gru
+#       --precisions float32,bfloat16 --train_points 177000 --train_batch_sizes 1 --out .devcarry/xla_gru
 # NSFP_DIR (default .devcarry/nsfp_xla; skipped when absent) likewise, ~3 minutes on 2 CPU cores (the reference: 50
 # of TensorFlow's steps at 37.5K points):
 #   python tools/export_nsfp_xla.py --points 150000,37500 --segment_steps 50 --precisions float32,tf32 \
