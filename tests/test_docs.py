@@ -655,6 +655,7 @@ ONEDNN_TABLE = Table(
 
 # -- heads and losses (benchmark_heads.py), in docs/training.md
 _HB = "heads_synthetic.json"
+_HB_SEED1 = "heads_synthetic_seed1.json"  # the same run with train.seed=1
 _HB_DOC = "docs/training.md"
 _HB_VARIANTS = (("paper_l2", "paper head + L2"), ("gru_l2", "GRU head + L2"), ("gru_deflow", "GRU head + DeFlow loss"),
                 ("gru_deltaflow", "GRU head + DeltaFlow loss"), ("gru2_deltaflow", "GRU (2 iterations) + DeltaFlow loss"),
@@ -663,29 +664,35 @@ _HB_VARIANTS = (("paper_l2", "paper head + L2"), ("gru_l2", "GRU head + L2"), ("
 _HB_COLUMNS = ("moving_mps", "stationary_mps", "fg_dynamic_epe_m", "three_way_mean_epe_m", "bucketed_dynamic_norm_epe")
 
 
-def _head_cell(fmt, variant, column):
+def _head_cell(source_file, fmt, variant, column):
     """A figure of the heads benchmark's headline, 3 decimals; n/a where the evaluation had no such points."""
     return Calc("{}", lambda v: "n/a" if v is None else f"{v:.3f}",
-                (V(_HB, f"formats/{fmt}/headline/{variant}/{column}"),))
+                (V(source_file, f"formats/{fmt}/headline/{variant}/{column}"),))
 
 
-HEADS_TABLE = Table(
-    _HB_DOC, Quote(_HB_DOC, "`benchmarks/heads_synthetic.json`: {} training steps a variant, seed {}, `{}`, synthetic "
-                            "data in the formats {} ({} training and {} held-out WOD segments or AV2 logs of {} "
-                            "frames, WOD lidar scale {}); error on the held-out pairs, {} ({} cores):",
-                   (V(_HB, "options/steps"), V(_HB, "options/seed"), V(_HB, "options/config"),
-                    Calc("{}", lambda f: ", ".join(f), (V(_HB, "options/formats"),)),
-                    V(_HB, "options/train_segments"), V(_HB, "options/eval_segments"),
-                    V(_HB, "options/frames_per_segment"), V(_HB, "options/lidar_scale"), V(_HB, "cpu/model_name"),
-                    V(_HB, "cpu/cpu_count"))),
-    ("data", "variant", "moving (m/s)", "stationary (m/s)", "fg dynamic EPE (m)", "three-way mean EPE (m)",
-     "bucketed dynamic (normalized)"), "llrrrrr",
-    tuple((fmt, label, *(_head_cell(fmt, variant, c) for c in _HB_COLUMNS))
-          for fmt in lookup(source(_HB), "options/formats") for variant, label in _HB_VARIANTS))
+def _heads_table(source_file):
+    return Table(
+        _HB_DOC, Quote(_HB_DOC, f"`benchmarks/{source_file}`: {{}} training steps a variant, seed {{}}, `{{}}`, "
+                                "synthetic data in the formats {} ({} training and {} held-out WOD segments or AV2 "
+                                "logs of {} frames, WOD lidar scale {}); error on the held-out pairs, {} ({} cores):",
+                       (V(source_file, "options/steps"), V(source_file, "options/seed"),
+                        V(source_file, "options/config"),
+                        Calc("{}", lambda f: ", ".join(f), (V(source_file, "options/formats"),)),
+                        V(source_file, "options/train_segments"), V(source_file, "options/eval_segments"),
+                        V(source_file, "options/frames_per_segment"), V(source_file, "options/lidar_scale"),
+                        V(source_file, "cpu/model_name"), V(source_file, "cpu/cpu_count"))),
+        ("data", "variant", "moving (m/s)", "stationary (m/s)", "fg dynamic EPE (m)", "three-way mean EPE (m)",
+         "bucketed dynamic (normalized)"), "llrrrrr",
+        tuple((fmt, label, *(_head_cell(source_file, fmt, variant, c) for c in _HB_COLUMNS))
+              for fmt in lookup(source(source_file), "options/formats") for variant, label in _HB_VARIANTS))
+
+
+HEADS_TABLE = _heads_table(_HB)
+HEADS_SEED1_TABLE = _heads_table(_HB_SEED1)
 
 TABLES = (LATENCY_TABLE, BF16_TABLE, MEMORY_TABLE, ONNX_TABLE, GPU_FORWARD_TABLE, GPU_TRAIN_TABLE, INPUT_TABLE,
           AV2_INPUT_TABLE, TRAINING_INPUT_TABLE, SIZING_TABLE, NSFP_SPEED_TABLE, NSFP_QUALITY_TABLE, DISTILLATION_TABLE,
-          SOAK_TABLE, ONEDNN_TABLE, HEADS_TABLE)
+          SOAK_TABLE, ONEDNN_TABLE, HEADS_TABLE, HEADS_SEED1_TABLE)
 
 _1M = "latency_cpu_1m.json"
 _AMD_DIFF = "summary/flow_difference_bfloat16_vs_float32_mps"
