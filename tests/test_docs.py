@@ -917,8 +917,9 @@ def _rm_projected(prefix, key, fmt):
 
 REMAT_TABLE = Table(
     B, Quote(B, "`tools/benchmark_cpu_step.py --jobs train --modes auto --settings before,after,after_remat --rounds "
-                "{} --no_stages` (`benchmarks/cpu_step_avx2_remat.json`), paper config, {} points, batch 1, medians "
-                "over the rounds of the median of {} steps after {} warm-up steps; {} ({} cores), oneDNN and XLA "
+                "{} --no_stages` (`benchmarks/cpu_step_avx2_remat.json`), paper config, {} points, batch 1, the "
+                "middle over the rounds (`bench.middle`: of two, the larger) of the median of {} steps after {} "
+                "warm-up steps; {} ({} cores), oneDNN and XLA "
                 "capped to AVX2 (`zen3`); projected = the issue's Zen 3 figures of ff3d_tf before scaled by this "
                 "run's ratios to its own \"before\":",
              (V(_RM, "rounds"), V(_RM, "train_points", "{:,}"), V(_RM, "steps"), V(_RM, "warmup"),
