@@ -232,7 +232,8 @@ def new_export(cfg, model, out_dir: str, platforms: Sequence[str], weights_sourc
     if os.path.exists(os.path.join(out_dir, REFERENCE_NAME)):
         os.remove(os.path.join(out_dir, REFERENCE_NAME))
     weights = model_weights(model)
-    np.savez(os.path.join(out_dir, WEIGHTS_NAME), **{f"w{i:03d}": np.asarray(v.numpy()) for i, v in enumerate(weights)})
+    np.savez_compressed(os.path.join(out_dir, WEIGHTS_NAME),
+                        **{f"w{i:03d}": np.asarray(v.numpy()) for i, v in enumerate(weights)})
     g = cfg.grid
     return {
         "format": FORMAT,
@@ -263,4 +264,4 @@ def write_manifest(out_dir: str, manifest: dict) -> None:
 
 def add_reference(out_dir: str, arrays: dict) -> None:
     """Adds `arrays` to the directory's `REFERENCE_NAME` (created when there is none)."""
-    np.savez(os.path.join(out_dir, REFERENCE_NAME), **{**(load_reference(out_dir) or {}), **arrays})
+    np.savez_compressed(os.path.join(out_dir, REFERENCE_NAME), **{**(load_reference(out_dir) or {}), **arrays})

@@ -28,6 +28,10 @@ def main():
     p.add_argument("--train_batch_sizes", default="1", help="batch sizes of the training-step artifacts")
     p.add_argument("--train_precisions", default=None, help="default: --precisions")
     p.add_argument("--reference", action="store_true", help="save TensorFlow's results for the runner to compare")
+    p.add_argument("--variants", default="", help="other programs of the forward for tools/profile_xla.py to compare "
+                   "(comma-separated; each one of fold_bn, one_chunk or several joined with '+')")
+    p.add_argument("--variant_points", default="", help="the variants' cloud sizes (default: --points)")
+    p.add_argument("--variant_precisions", default="", help="the variants' precisions (default: --precisions)")
     p.add_argument("--out", required=True)
     args = p.parse_args()
     cfg = _common.load(args)
@@ -51,7 +55,9 @@ def main():
         xla_export_dir.check_precisions(precisions + train_precisions)  # before the forward is written
         manifest = export_forward(cfg, model, points, args.out, precisions, args.platforms.split(","),
                                   args.batch_size, weights_source=args.checkpoint or "random initialisation",
-                                  reference=args.reference)
+                                  reference=args.reference, variants=[v for v in args.variants.split(",") if v],
+                                  variant_points=integers("variant_points", args.variant_points),
+                                  variant_precisions=[v for v in args.variant_precisions.split(",") if v])
         if train_points:
             manifest = export_train_steps(cfg, model, args.out, train_points, train_batch_sizes, train_precisions,
                                           reference=args.reference)

@@ -19,6 +19,7 @@ DEFAULT when enabled), so each precision is traced with the setting it names (se
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Sequence
 
 import numpy as np
@@ -32,6 +33,12 @@ from ff3d_tf.schema import MODEL_INPUT_KEYS
 from ff3d_tf.xla_export_dir import OUTPUT_KEYS, input_specs, model_weights, tracing_model
 
 PLATFORMS = xla_program.PLATFORMS
+
+# Other programs of the same model and weights that an export can add beside its artifacts (manifest "variants", by
+# name; names join with "+"): tools/profile_xla.py times and profiles them against the plain artifacts, on the same
+# inputs, and checks that they compute the same flow.
+VARIANTS = {"fold_bn": "the BatchNorm folded into each ConvBlock's convolution (ConvBlock.fold_batch_norm)",
+            "one_chunk": "the point encoder over the whole cloud in one chunk (ops.ONE_CHUNK)"}
 
 
 def forward_hlo(model, batch_size: int, padded_points: int, tf32: bool = False) -> bytes:
@@ -53,6 +60,32 @@ def forward_hlo(model, batch_size: int, padded_points: int, tf32: bool = False) 
     return xla_program.traced_hlo(forward, specs, tf32)
 
 
+def check_variants(variants: Sequence[str]) -> None:
+    for variant in variants:
+        unknown = [part for part in variant.split("+") if part not in VARIANTS]
+        if unknown or not variant:
+            raise ValueError(f"forward variant {variant!r} unknown; one of {', '.join(VARIANTS)}, or several "
+                             f"joined with '+'")
+
+
+def variant_model(cfg: ExperimentConfig, precision: str, model, variant: str):
+    """A model that traces `variant` (see VARIANTS) for `precision`, with `model`'s weights as its arguments."""
+    from ff3d_tf.model import build_model, layers, ops
+    check_variants([variant])
+    parts = variant.split("+")
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, mixed_precision=precision == "bfloat16"))
+    tracer = build_model(cfg, point_chunk_size=ops.ONE_CHUNK if "one_chunk" in parts else None)
+    layers.fold_batch_norms(tracer, "fold_bn" in parts)
+    if [(v.shape, v.dtype) for v in model_weights(tracer)] != [(v.shape, v.dtype) for v in model_weights(model)]:
+        raise ValueError(f"variant {variant} changes the weights' shapes or dtypes")
+    return tracer
+
+
+def variant_file(padded_points: int, precision: str, variant: str) -> str:
+    return xla_artifact.artifact_name(padded_points, precision).replace(".jaxexport",
+                                                                        f".{variant.replace('+', '_')}.jaxexport")
+
+
 def _reference(model, manifest: dict, rng: np.random.Generator) -> dict:
     """Inputs and TensorFlow's results (CPU, XLA) for the first float32 forward artifact, for the runner to compare
     against what the exported program computes on its device (`xla_export_dir.REFERENCE_NAME`)."""
@@ -70,15 +103,19 @@ def _reference(model, manifest: dict, rng: np.random.Generator) -> dict:
 def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir: str,
                    precisions: Sequence[str] = ("float32",), platforms: Sequence[str] = PLATFORMS,
                    batch_size: int = 1, weights_source: str = "random initialisation", log=print,
-                   reference: bool = False) -> dict:
+                   reference: bool = False, variants: Sequence[str] = (),
+                   variant_points: Sequence[int] = (), variant_precisions: Sequence[str] = ()) -> dict:
     """Writes `out_dir` (layout in `ff3d_tf.xla_export_dir`): the weights of `model` and one forward artifact per
     (bucket, precision).
 
     `points` are cloud sizes; each is padded to its bucket (`data.point_bucket_base`), as the input pipeline does.
     `reference`: also write TensorFlow's results for the first float32 artifact (`xla_export_dir.REFERENCE_NAME`).
+    `variants` (names of VARIANTS): the same for each, at `variant_points` and `variant_precisions` (default `points`,
+    `precisions`), listed under the manifest's "variants" and not among its artifacts (no predictor picks them).
     Returns the manifest (also written as manifest.json).
     """
-    xla_export_dir.check_precisions(precisions)
+    xla_export_dir.check_precisions([*precisions, *variant_precisions])
+    check_variants(variants)
     if not points or min(points) < 1:
         raise ValueError(f"points must be positive cloud sizes, got {list(points)}")
     manifest = xla_export_dir.new_export(cfg, model, out_dir, platforms, weights_source)
@@ -93,6 +130,19 @@ def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir:
                                                                            tf32=precision == "tf32"), platforms, log)
             manifest["artifacts"].append({"points": int(n), "padded_points": padded, "batch_size": batch_size,
                                           "precision": precision, "file": name, "bytes": written[name]})
+    for variant in variants:
+        entries = manifest.setdefault("variants", {}).setdefault(variant, [])
+        for precision in variant_precisions or precisions:
+            tracer = variant_model(cfg, precision, model, variant)
+            for n in variant_points or points:
+                padded = bucket_size(n, cfg.data.point_bucket_base)
+                name = variant_file(padded, precision, variant)
+                if name not in written:
+                    written[name] = xla_program.write_program(
+                        out_dir, name, forward_hlo(tracer, batch_size, padded, tf32=precision == "tf32"), platforms,
+                        log)
+                entries.append({"points": int(n), "padded_points": padded, "batch_size": batch_size,
+                                "precision": precision, "file": name, "bytes": written[name], "variant": variant})
     if reference:
         xla_export_dir.add_reference(out_dir, _reference(model, manifest, np.random.default_rng(0)))
     xla_export_dir.write_manifest(out_dir, manifest)

@@ -152,18 +152,24 @@ def test_conv_block():
                    expected_output_shapes=(B, 4, 4, 4))
 
 
+def _conv_block_off_initial_values(input_shape, strides):
+    """A 4-filter ConvBlock whose BatchNorm gamma, beta, moving mean and variance are random, and those four."""
+    block = L.ConvBlock(4, strides=strides)
+    block.build(input_shape)
+    values = (RNG.uniform(0.5, 1.5, 4).astype(np.float32), RNG.normal(0, 1, 4).astype(np.float32),
+              RNG.normal(0, 1, 4).astype(np.float32), RNG.uniform(0.5, 2, 4).astype(np.float32))
+    for variable, value in zip((block.bn.gamma, block.bn.beta, block.bn.moving_mean, block.bn.moving_variance),
+                               values):
+        variable.assign(value)
+    return block, values
+
+
 @pytest.mark.parametrize("training", [True, False])
 def test_conv_block_batch_norm_matches_numpy(training):
     """The fused BatchNorm computes Keras' BatchNormalization: batch statistics (biased variance) in training, moving
     statistics updated with momentum 0.99, moving statistics in inference; epsilon 1e-3."""
     x = tf.constant(RNG.normal(0, 1, (B, 8, 8, 3)).astype(np.float32))
-    block = L.ConvBlock(4, strides=1)
-    block.build(x.shape)
-    gamma, beta = RNG.uniform(0.5, 1.5, 4).astype(np.float32), RNG.normal(0, 1, 4).astype(np.float32)
-    mean0, var0 = RNG.normal(0, 1, 4).astype(np.float32), RNG.uniform(0.5, 2, 4).astype(np.float32)
-    for var, value in ((block.bn.gamma, gamma), (block.bn.beta, beta), (block.bn.moving_mean, mean0),
-                       (block.bn.moving_variance, var0)):
-        var.assign(value)
+    block, (gamma, beta, mean0, var0) = _conv_block_off_initial_values(x.shape, strides=1)
     conv = block.conv(x).numpy()  # [B,8,8,4]
     out = block(x, training=training).numpy()
     if training:
@@ -175,6 +181,26 @@ def test_conv_block_batch_norm_matches_numpy(training):
         np.testing.assert_array_equal(block.bn.moving_mean.numpy(), mean0)
     expected = np.maximum((conv - mean) / np.sqrt(variance + 1e-3) * gamma + beta, 0.0)
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("strides", [1, 2])
+def test_conv_block_folded_batch_norm_matches_numpy(strides):
+    """Inference with the BatchNorm folded into the kernel and a bias (`fold_batch_norm`, the fold_bn export variant)
+    gives the unfolded block's numbers: conv, (y - mean) / sqrt(var + eps) * gamma + beta, ReLU; at stride 2 with
+    Keras' SAME padding. Training ignores the folding."""
+    x = tf.constant(RNG.normal(0, 1, (B, 9, 9, 3)).astype(np.float32))  # odd size: stride 2 pads unevenly
+    block, (gamma, beta, mean, var) = _conv_block_off_initial_values(x.shape, strides)
+    conv = block.conv(x).numpy()
+    expected = np.maximum((conv - mean) / np.sqrt(var + 1e-3) * gamma + beta, 0.0)
+    model = keras.Sequential([block])
+    assert L.fold_batch_norms(model) == 1 and block.fold_batch_norm
+    np.testing.assert_allclose(block(x, training=False).numpy(), expected, rtol=1e-5, atol=1e-5)
+    unfolded_training = L.ConvBlock(4, strides=strides)
+    unfolded_training.build(x.shape)
+    for a, b in zip(unfolded_training.weights, block.weights):
+        a.assign(b)
+    np.testing.assert_allclose(block(x, training=True).numpy(), unfolded_training(x, training=True).numpy(),
+                               rtol=1e-6, atol=1e-6)
 
 
 def _bilinear_2x_matrix(n):
