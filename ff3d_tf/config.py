@@ -162,7 +162,7 @@ class ModelConfig:
     head: str = "paper"
     gru_iterations: int = 4
     # Training recomputes the encoder stages' activations (rows C-R) in the backward pass from each stage's input
-    # instead of holding them: less memory at the step's peak (docs/training.md, benchmarks/cpu_step_avx2_remat.json).
+    # instead of holding them: less memory at the step's peak (docs/training.md, benchmarks/cpu_step_avx2_memory.json).
     remat_encoder: bool = False
     # Zeros for row Z's kernel (the model starts at the zero-flow prediction) instead of the paper's Glorot init:
     # sum-pooled dense pillars through the linear decoder otherwise start at outputs of tens of m/s.

@@ -49,16 +49,17 @@ EMULATIONS = {
 # AVX512_BF16, AMX); without them it runs Eigen's kernels.
 TENSORFLOW_ONEDNN_FLAGS = ("avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16", "amx_int8")
 # What `startup_environment` may set, and the jobs it tells apart.
-STARTUP_KEYS = ("TF_ENABLE_ONEDNN_OPTS", "TF_CPU_ALLOCATOR_USE_BFC")
+STARTUP_KEYS = ("TF_ENABLE_ONEDNN_OPTS", "TF_CPU_ALLOCATOR_USE_BFC", "MALLOC_ARENA_MAX")
 STARTUP_JOBS = ("train", "inference")
 # The start-up environment per job on an x86 CPU with AVX2 but none of TENSORFLOW_ONEDNN_FLAGS usable (AMD Zen 3,
 # Intel Haswell to Comet Lake): oneDNN off (TensorFlow's own default there; oneDNN has no bfloat16 convolutions there).
 # To serve, TensorFlow's CPU allocator as a BFC pool (Eigen's kernels then reuse memory instead of faulting in fresh
-# pages every call); to train, malloc and free as TensorFlow has them there: the pool keeps the region it grew to for
-# the training program's temporaries, a higher peak for about the same step time. The measurement with them
-# ("after"): benchmarks/cpu_step_avx2.json (tools/benchmark_cpu_step.py, both libraries capped to AVX2),
-# docs/benchmarks.md.
-AVX2_STARTUP = {"train": {"TF_ENABLE_ONEDNN_OPTS": "0"},
+# pages every call); to train, malloc and free as TensorFlow has them there (the pool keeps the region it grew to for
+# the training program's temporaries, a higher peak for about the same step time), from two glibc arenas instead of
+# up to eight per core: the threads' freed blocks are reused across threads rather than held in arenas of their own
+# (`limit_malloc_arenas`). The measurement with them ("after"): benchmarks/cpu_step_avx2.json and
+# benchmarks/cpu_step_avx2_memory.json (tools/benchmark_cpu_step.py, both libraries capped to AVX2), docs/benchmarks.md.
+AVX2_STARTUP = {"train": {"TF_ENABLE_ONEDNN_OPTS": "0", "MALLOC_ARENA_MAX": "2"},
                 "inference": {"TF_ENABLE_ONEDNN_OPTS": "0", "TF_CPU_ALLOCATOR_USE_BFC": "true"}}
 
 
@@ -150,6 +151,23 @@ def tensorflow_onednn_default(info: CpuInfo, environ=None) -> bool:
     """Whether TensorFlow turns its oneDNN operations on by itself on `info`'s CPU, judged on the flags left usable
     under the caps of `environ` (so that a capped CPU is judged as the one it emulates)."""
     return any(f in usable_flags(info, environ) for f in TENSORFLOW_ONEDNN_FLAGS)
+
+
+def limit_malloc_arenas(environ=None) -> int | None:
+    """Applies `environ`'s (default os.environ) MALLOC_ARENA_MAX to this process with glibc's mallopt(M_ARENA_MAX):
+    glibc reads the variable only when a process starts, so a tool that sets it in its own environment
+    (`startup_environment`, tools/_common.py) applies it this way, before TensorFlow starts its threads. Returns the
+    limit applied; None when the variable is unset, not a positive integer, or libc is not glibc."""
+    import ctypes
+    value = (os.environ if environ is None else environ).get("MALLOC_ARENA_MAX", "")
+    if not value.isdigit() or int(value) < 1:
+        return None
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
+    m_arena_max = -8  # glibc's malloc.h
+    return int(value) if hasattr(libc, "mallopt") and libc.mallopt(m_arena_max, int(value)) == 1 else None
 
 
 def startup_environment(job: str, info: CpuInfo | None = None, environ=None) -> dict:

@@ -64,7 +64,7 @@ def test_startup_environment_per_cpu_and_job():
         assert cpu.startup_environment(job, zen4, caps) == cpu.AVX2_STARTUP[job]
         assert "TF_ENABLE_ONEDNN_OPTS" not in cpu.startup_environment(job, zen4, cpu.EMULATIONS["zen3_onednn"])
         # Whatever the user set stays theirs.
-        mine = {"TF_ENABLE_ONEDNN_OPTS": "1", "TF_CPU_ALLOCATOR_USE_BFC": "0"}
+        mine = {"TF_ENABLE_ONEDNN_OPTS": "1", "TF_CPU_ALLOCATOR_USE_BFC": "0", "MALLOC_ARENA_MAX": "8"}
         assert cpu.startup_environment(job, zen3, mine) == {}
     # Mixed precision never meets oneDNN on an AVX2 CPU: the start-up leaves it off for every job there.
     assert all(cpu.AVX2_STARTUP[job].get("TF_ENABLE_ONEDNN_OPTS") == "0" for job in cpu.STARTUP_JOBS)
@@ -89,3 +89,45 @@ def test_tools_apply_the_startup_environment_per_job(monkeypatch):
         return  # the start-up changes nothing without AVX2
     for tool, job in (("tools/train.py", "train"), ("tools/predict.py", "inference"), ("eval.py", "inference")):
         assert _common.startup_environment(tool, zen3_caps) == cpu.startup_environment(job, info, zen3_caps)
+
+
+ARENA_COUNT = """
+import ctypes, sys, threading
+sys.path.insert(0, sys.argv[1])
+from ff3d_tf import cpu
+applied = cpu.limit_malloc_arenas({"MALLOC_ARENA_MAX": sys.argv[2]})
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+ready, hold = threading.Barrier(7), threading.Event()
+def work():  # each thread's first malloc takes an arena of its own while the limit allows
+    p = libc.malloc(4096)
+    ready.wait()
+    hold.wait()
+    libc.free(p)
+threads = [threading.Thread(target=work) for _ in range(6)]
+[t.start() for t in threads]
+ready.wait()
+libc.malloc_stats()  # one "Arena N:" block per arena, on stderr
+hold.set()
+[t.join() for t in threads]
+print(applied)
+"""
+
+
+def test_limit_malloc_arenas_caps_the_arenas_threads_get():
+    """Six threads that each hold a block: with the default limit (8 per core) glibc gives each its own arena; limited
+    to 2 (what the training start-up sets on an AVX2 CPU) they share two."""
+    import subprocess
+    import sys
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    counts = {}
+    for value in ("", "2"):
+        out = subprocess.run([sys.executable, "-c", ARENA_COUNT, root, value], capture_output=True, text=True,
+                             timeout=60, env={k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"})
+        assert out.returncode == 0, out.stderr
+        counts[value] = (out.stdout.strip(), out.stderr.count("Arena "))
+    assert counts[""] == ("None", 7)  # the main arena and one per thread
+    assert counts["2"] == ("2", 2)
+    for bad in ("0", "x", "-1"):
+        assert cpu.limit_malloc_arenas({"MALLOC_ARENA_MAX": bad}) is None

@@ -900,43 +900,46 @@ CPU_TARGETS_TABLE = Table(
              V(_CS, "targets/forward_1m_over_32k"), "{:.2f}", False)))
 TABLES += (CPU_STEP_TABLE, CPU_STAGES_TABLE, CPU_FORWARD_TABLE, CPU_TARGETS_TABLE)
 
-# -- the encoder recomputed in the backward (benchmark_cpu_step.py --settings before,after,after_remat)
-_RM = "cpu_step_avx2_remat.json"
-_RM_SETTINGS = (("before", "before (TensorFlow's own start-up, `auto` = hybrid)", ()),
-                ("after", "after (the tools' start-up, `auto` per job)", ()),
-                ("after_remat", "after, `model.remat_encoder=true`", ("after_remat",)))
+# -- the training step's memory per start-up setting (benchmark_cpu_step.py --jobs train --settings ...): glibc's
+# malloc arenas (after_default_arenas: without the start-up's limit) and the encoder recomputed (after_remat)
+_STEP_SETTINGS = {"before": "before (TensorFlow's own start-up, `auto` = hybrid)",
+                  "after": "after (the tools' start-up, `auto` per job)",
+                  "after_remat": "after, `model.remat_encoder=true`",
+                  "after_default_arenas": "after, glibc's own malloc arenas (no `MALLOC_ARENA_MAX`)"}
 
 
-def _rm_projected(prefix, key, fmt):
-    """A projected figure of `projection_zen3` (the after_remat setting's under its own key); "the issue's" figure
-    for "before"."""
-    if prefix is None:
-        return V(_RM, ("peer", "ff3d_tf_before", key), fmt)
-    return V(_RM, ("projection_zen3",) + prefix + (key,), fmt)
+def _settings_table(file, settings):
+    """The training step of each of `settings` in `file`, measured and projected onto the issue's Zen 3 figures
+    (`projection_zen3`: "after"'s at its top level, another setting's under its own key; "before" is the issue's)."""
+    def projected(setting, key, fmt):
+        if setting == "before":
+            return V(file, ("peer", "ff3d_tf_before", key), fmt)
+        return V(file, ("projection_zen3",) + (() if setting == "after" else (setting,)) + (key,), fmt)
+
+    return Table(
+        B, Quote(B, f"`tools/benchmark_cpu_step.py --jobs train --modes auto --settings {','.join(settings)} --rounds "
+                    f"{{}} --no_stages` (`benchmarks/{file}`), paper config, {{}} points, batch 1, the "
+                    "middle over the rounds (`bench.middle`: of two, the larger) of the median of {} steps after {} "
+                    "warm-up steps; {} ({} cores), oneDNN and XLA "
+                    "capped to AVX2 (`zen3`); projected = the issue's Zen 3 figures of ff3d_tf before scaled by this "
+                    "run's ratios to its own \"before\":",
+                 (V(file, "rounds"), V(file, "train_points", "{:,}"), V(file, "steps"), V(file, "warmup"),
+                  V(file, "cpu/model_name"), V(file, "cpu/cpu_count"))),
+        ("setting", "runs", "step", "CPU", "peak", "projected step", "projected: over the peer", "projected peak"),
+        "llrrrrrr",
+        tuple((_STEP_SETTINGS[setting], V(file, ("summary", "train/auto", setting, "mode")),
+               V(file, ("summary", "train/auto", setting, "step_median_ms"), "{:,.0f} ms"),
+               V(file, ("summary", "train/auto", setting, "step_cpu_median_ms"), "{:,.0f} ms"),
+               V(file, ("summary", "train/auto", setting, "peak_rss_gb"), "{:.2f} GB"),
+               projected(setting, "train_step_32000_ms", "{:,.0f} ms"),
+               Calc("{:.2f}x", lambda peer, ms: peer / ms,
+                    (V(file, "peer/peer/train_step_32000_ms"), projected(setting, "train_step_32000_ms", "{}"))),
+               projected(setting, "train_step_32000_peak_gb", "{:.2f} GB"))
+              for setting in settings))
 
 
-REMAT_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_cpu_step.py --jobs train --modes auto --settings before,after,after_remat --rounds "
-                "{} --no_stages` (`benchmarks/cpu_step_avx2_remat.json`), paper config, {} points, batch 1, the "
-                "middle over the rounds (`bench.middle`: of two, the larger) of the median of {} steps after {} "
-                "warm-up steps; {} ({} cores), oneDNN and XLA "
-                "capped to AVX2 (`zen3`); projected = the issue's Zen 3 figures of ff3d_tf before scaled by this "
-                "run's ratios to its own \"before\":",
-             (V(_RM, "rounds"), V(_RM, "train_points", "{:,}"), V(_RM, "steps"), V(_RM, "warmup"),
-              V(_RM, "cpu/model_name"), V(_RM, "cpu/cpu_count"))),
-    ("setting", "runs", "step", "CPU", "peak", "projected step", "projected: over the peer", "projected peak"),
-    "llrrrrrr",
-    tuple((label, V(_RM, ("summary", "train/auto", setting, "mode")),
-           V(_RM, ("summary", "train/auto", setting, "step_median_ms"), "{:,.0f} ms"),
-           V(_RM, ("summary", "train/auto", setting, "step_cpu_median_ms"), "{:,.0f} ms"),
-           V(_RM, ("summary", "train/auto", setting, "peak_rss_gb"), "{:.2f} GB"),
-           _rm_projected(None if setting == "before" else prefix, "train_step_32000_ms", "{:,.0f} ms"),
-           Calc("{:.2f}x", lambda peer, ms: peer / ms,
-                (V(_RM, "peer/peer/train_step_32000_ms"),
-                 _rm_projected(None if setting == "before" else prefix, "train_step_32000_ms", "{}"))),
-           _rm_projected(None if setting == "before" else prefix, "train_step_32000_peak_gb", "{:.2f} GB"))
-          for setting, label, prefix in _RM_SETTINGS))
-TABLES += (REMAT_TABLE,)
+MEMORY_TABLE = _settings_table("cpu_step_avx2_memory.json", ("before", "after", "after_default_arenas", "after_remat"))
+TABLES += (MEMORY_TABLE,)
 
 # -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
 _HC = "head_cost_cpu.json"

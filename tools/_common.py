@@ -10,6 +10,8 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
+from ff3d_tf import cpu as _cpu  # noqa: E402  (the standard library only: TensorFlow is not imported yet)
+
 # The tools that train FastFlow3D in their own process: the "train" job of `ff3d_tf.cpu.startup_environment`; every
 # other tool runs the model forward (or no model at all): "inference".
 TRAINING_TOOLS = ("train.py", "run_study.py", "benchmark_training.py")
@@ -19,12 +21,12 @@ def startup_environment(argv0: str | None = None, environ=None) -> dict:
     """What this tool adds to its environment before TensorFlow is imported (read once, when TensorFlow starts):
     `ff3d_tf.cpu.startup_environment` for its job (`TRAINING_TOOLS`), on this machine's CPU; the user's own settings
     are kept. docs/deployment.md ("Serving on a CPU") says what each CPU gets."""
-    from ff3d_tf import cpu  # the standard library only: TensorFlow is not imported yet
     job = "train" if os.path.basename(argv0 or sys.argv[0]) in TRAINING_TOOLS else "inference"
-    return cpu.startup_environment(job, environ=environ)
+    return _cpu.startup_environment(job, environ=environ)
 
 
 os.environ.update(startup_environment())
+_cpu.limit_malloc_arenas()  # glibc read MALLOC_ARENA_MAX at start, before the line above could set it
 
 
 # The flags by which a tool names a model_dir, a checkpoint prefix or a SavedModel directory: a tool given one of them

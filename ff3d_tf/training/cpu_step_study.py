@@ -39,7 +39,9 @@ SETTINGS = ("before", "after")
 # what the start-up does not choose on an AVX2-only CPU): the measurement behind that choice and behind
 # `compile_lib.AUTO_CPU`'s "onednn_avx2" entries.
 # "after_remat": "after" with `model.remat_encoder=true` (REMAT_OVERRIDE), the training memory it saves and its time.
-ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat")
+# "after_default_arenas": "after" with glibc's own number of malloc arenas (MALLOC_ARENA_MAX left out), what the
+# start-up's limit saves.
+ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat", "after_default_arenas")
 REMAT_OVERRIDE = "model.remat_encoder=true"
 JOBS = ("train", "forward")
 MODES = ("auto", "hybrid", "xla", "none")
@@ -77,6 +79,8 @@ def variant_environment(setting: str, job: str, cap: str, base: Mapping | None =
         caps.update(cpu.startup_environment(STARTUP_JOB[job], environ=caps))
     if setting == "after_onednn":
         caps["TF_ENABLE_ONEDNN_OPTS"] = "1"
+    if setting == "after_default_arenas":
+        caps.pop("MALLOC_ARENA_MAX", None)
     return {**env, **caps}
 
 
@@ -110,10 +114,12 @@ def _header(mode: str) -> dict:
 
 
 def train_child(config: str, overrides: list, mode: str, points: int, steps: int, warmup: int,
-                point_programs: str, stages: bool, stage_runs: int) -> dict:
+                point_programs: str, stages: bool, stage_runs: int, malloc_arena_max: str | None = None) -> dict:
     """(In a child.) The Trainer's step in compile `mode` (resolved) on one labelled benchmark example: "step_ms" and
     "step_cpu_ms" of each of `steps` steps after `warmup`, "peak_rss_gb" (the process's peak resident memory from its
-    start to the last step: libraries, compilation, every step), and with `stages` the step's parts (`stage_times`)."""
+    start to the last step: libraries, compilation, every step), and with `stages` the step's parts (`stage_times`).
+    `malloc_arena_max`: applied before TensorFlow starts, as tools/_common.py does (`cpu.limit_malloc_arenas`)."""
+    arenas = cpu.limit_malloc_arenas({"MALLOC_ARENA_MAX": malloc_arena_max or ""})
     import numpy as np
     from ff3d_tf.training import bench_steps
     cfg = _setup(config, overrides, point_programs)
@@ -121,7 +127,8 @@ def train_child(config: str, overrides: list, mode: str, points: int, steps: int
     step = bench.fetched(bench_steps.train_steps(cfg, {mode: mode}, labelled)[mode])
     readings = bench.measure(step, steps, warmup, reading=bench.timed_with_usage)
     out = {**_header(mode), "points": points, "padded_points": padded, "point_programs": point_programs,
-           "step_ms": [r["ms"] for r in readings], "step_cpu_ms": [r["cpu_ms"] for r in readings],
+           "malloc_arena_max": arenas, "step_ms": [r["ms"] for r in readings],
+           "step_cpu_ms": [r["cpu_ms"] for r in readings],
            "peak_rss_gb": bench.proc_status("VmHWM"), "rss_after_gb": bench.proc_status("VmRSS")}
     out["step_median_ms"] = bench.middle(out["step_ms"])
     if stages:  # after the steps: the peak above is the step's alone
@@ -134,9 +141,10 @@ def train_child(config: str, overrides: list, mode: str, points: int, steps: int
 
 
 def forward_child(config: str, overrides: list, mode: str, points: list, runs: int, warmup: int,
-                  point_programs: str) -> dict:
+                  point_programs: str, malloc_arena_max: str | None = None) -> dict:
     """(In a child.) The compiled forward (`compiled_forward`, batch 1) in compile `mode` at each of `points`, round
     robin: {"forward_ms": {points: each call's ms}, "median_ms": {points: median}, "peak_rss_gb"}."""
+    cpu.limit_malloc_arenas({"MALLOC_ARENA_MAX": malloc_arena_max or ""})
     import numpy as np
     from ff3d_tf.config import replace_config
     from ff3d_tf.model import build_model
@@ -337,8 +345,9 @@ def projection(summary: Mapping, figures: Mapping | None = None) -> dict:
     step, fwd = summary.get("train/auto"), summary.get("forward/auto")
     if both(step):
         out.update(_train_projection(step["before"], step["after"], before, peer))
-        if "after_remat" in step and "error" not in step["after_remat"]:
-            out["after_remat"] = _train_projection(step["before"], step["after_remat"], before, peer)
+        for setting in ("after_remat", "after_default_arenas"):
+            if setting in step and "error" not in step[setting]:
+                out[setting] = _train_projection(step["before"], step[setting], before, peer)
     if both(fwd):
         for n in ("32000", "1000000"):
             if n in fwd["after"]["median_ms"]:
@@ -403,9 +412,12 @@ def study(config: str, overrides: Sequence[str], train_points: int, forward_poin
         else:
             fn = f"{MODULE}:forward_child"
             kwargs.update(points=list(forward_points), runs=runs)
-        removed = {k: os.environ.pop(k) for k in list(os.environ) if k not in environment}
+        # The child applies MALLOC_ARENA_MAX as a tool does (`cpu.limit_malloc_arenas` after its start), not at exec.
+        kwargs["malloc_arena_max"] = environment.get("MALLOC_ARENA_MAX")
+        exec_environment = {k: v for k, v in environment.items() if k != "MALLOC_ARENA_MAX"}
+        removed = {k: os.environ.pop(k) for k in list(os.environ) if k not in exec_environment}
         try:
-            reading = children.run_child(fn, kwargs, cores=cores, env=dict(environment),
+            reading = children.run_child(fn, kwargs, cores=cores, env=exec_environment,
                                          timeout_s=timeout_s, what=f"{key} {setting}", on_error="record")
         finally:
             os.environ.update(removed)

@@ -31,6 +31,22 @@ def test_after_remat_is_after_with_the_encoder_recomputed(monkeypatch):
     assert [c["overrides"] for c in calls] == [["train.seed=1"], ["train.seed=1", study.REMAT_OVERRIDE]]
 
 
+def test_the_child_limits_malloc_arenas_as_a_tool_does(monkeypatch):
+    """MALLOC_ARENA_MAX of the start-up reaches a child as an argument that it applies after its start (as
+    tools/_common.py), not in the environment glibc reads at exec; "after_default_arenas" leaves it out."""
+    caps = {k: v for k, v in cpu.EMULATIONS["zen3"].items() if k != "TF_ENABLE_ONEDNN_OPTS"}
+    expected = cpu.startup_environment("train", environ=caps).get("MALLOC_ARENA_MAX")
+    assert study.variant_environment("after", "train", "zen3", {}).get("MALLOC_ARENA_MAX") == expected
+    assert "MALLOC_ARENA_MAX" not in study.variant_environment("after_default_arenas", "train", "zen3", {})
+    calls = []
+    monkeypatch.setattr(study.children, "run_child", lambda fn, kwargs, env, **kw: calls.append((kwargs, env)) or {
+        "mode": kwargs["mode"], "onednn_enabled": False, "step_median_ms": 1.0, "peak_rss_gb": 1.0})
+    study.study("", [], 100, [100], ["xla"], ["train"], ["after", "after_default_arenas"], "zen3", 1, 0, 1, False, 1,
+                1, log_fn=lambda line: None)
+    assert [kwargs["malloc_arena_max"] for kwargs, _ in calls] == [expected, None]
+    assert not any("MALLOC_ARENA_MAX" in env for _, env in calls)
+
+
 def test_resolved_mode_per_setting_and_job():
     assert study.resolved_mode("before", "auto", "train", {}) == "hybrid"  # the rule before the per-job choice
     assert study.resolved_mode("after", "xla", "forward", {}) == "xla"
