@@ -1,14 +1,18 @@
-"""Ground points of a LiDAR sweep without a map: a local height rule, the same for every cloud it is given.
+"""Ground points of a LiDAR sweep without a map: a local height rule, the same for every cloud it is given; for a
+pair of sweeps in one frame, `pair_ground_masks` (one surface for both, and raised ground that stayed put).
 
 The sweep's x-y plane (vehicle frame) is cut into `cell_m` x `cell_m` columns. A column's ground height is a low
 percentile of the z of its points (`percentile`: robust to a few returns below the road surface, e.g. multipath); a
 column with fewer than `min_points` points takes the lowest ground height among its 8 neighbours that have one (again,
 up to `fill_passes` times), and one still without, the sweep's own low percentile. A point's ground height is the
 bilinear interpolation of its four nearest column centres' heights, so a slope is followed across a column instead of
-stepping at its edges (and carried on past the outermost centres); the point is ground when it lies less than `above_m` above that height. A column filled by an
-object's roof alone (no ground under it seen) is the rule's known miss, made rarer by columns wider than a roof.
+stepping at its edges (and carried on past the outermost centres); the point is ground when it lies less than
+`above_m` above that height. A column filled by an object's roof alone (no ground under it seen) is the rule's known
+miss, made rarer by columns wider than a roof.
 """
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 
@@ -16,6 +20,12 @@ GROUND_CELL_M = 4.0
 GROUND_ABOVE_M = 0.3
 GROUND_PERCENTILE = 5.0
 GROUND_MIN_POINTS = 8
+# `pair_ground_masks`: columns longer than a car (so a column rarely holds an object and no road; the default counts
+# the lower parts of objects and kerbs as ground more often), and a point up to STATIC_BAND_M above the surface whose
+# nearest point of the other sweep lies within STATIC_MATCH_M is ground too.
+PAIR_GROUND_CELL_M = 8.0
+STATIC_BAND_M = 0.4
+STATIC_MATCH_M = 0.1
 _MAX_COLUMNS_PER_AXIS = 1024  # a sweep wider than this many columns gets wider columns
 _FILL_PASSES = 3
 
@@ -53,13 +63,25 @@ def _filled(heights: np.ndarray, fallback: float) -> np.ndarray:
 def height_ground_mask(points_xyz, cell_m: float = GROUND_CELL_M, above_m: float = GROUND_ABOVE_M,
                        percentile: float = GROUND_PERCENTILE, min_points: int = GROUND_MIN_POINTS) -> np.ndarray:
     """[N] bool: the points within `above_m` of their interpolated ground height (module docstring)."""
+    xyz = _checked_points(points_xyz, "height_ground_mask")
+    return xyz[:, 2] < ground_height_m(xyz, cell_m, percentile, min_points) + above_m
+
+
+def _checked_points(points_xyz, what: str) -> np.ndarray:
     xyz = np.asarray(points_xyz, np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
-        raise ValueError(f"height_ground_mask: points must be [N, 3], got {xyz.shape}")
-    if len(xyz) == 0:
-        return np.zeros(0, bool)
+        raise ValueError(f"{what}: points must be [N, 3], got {xyz.shape}")
     if not np.isfinite(xyz).all():
-        raise ValueError("height_ground_mask: points have non-finite coordinates")
+        raise ValueError(f"{what}: points have non-finite coordinates")
+    return xyz
+
+
+def ground_height_m(points_xyz, cell_m: float = GROUND_CELL_M, percentile: float = GROUND_PERCENTILE,
+                    min_points: int = GROUND_MIN_POINTS) -> np.ndarray:
+    """[N] the interpolated ground height (m) under each point (module docstring)."""
+    xyz = _checked_points(points_xyz, "ground_height_m")
+    if len(xyz) == 0:
+        return np.zeros(0)
     low = xyz[:, :2].min(0)
     extent = xyz[:, :2].max(0) - low
     cell_m = max(cell_m, float(extent.max()) / (_MAX_COLUMNS_PER_AXIS - 1))
@@ -77,6 +99,56 @@ def height_ground_mask(points_xyz, cell_m: float = GROUND_CELL_M, above_m: float
     frac = np.clip(v - base, 0.0, 1.0)
     h00, h10 = heights[base[:, 0], base[:, 1]], heights[base[:, 0] + 1, base[:, 1]]
     h01, h11 = heights[base[:, 0], base[:, 1] + 1], heights[base[:, 0] + 1, base[:, 1] + 1]
-    ground_z = ((1 - frac[:, 0]) * ((1 - frac[:, 1]) * h00 + frac[:, 1] * h01)
-                + frac[:, 0] * ((1 - frac[:, 1]) * h10 + frac[:, 1] * h11))
-    return xyz[:, 2] < ground_z + above_m
+    return ((1 - frac[:, 0]) * ((1 - frac[:, 1]) * h00 + frac[:, 1] * h01)
+            + frac[:, 0] * ((1 - frac[:, 1]) * h10 + frac[:, 1] * h11))
+
+
+def pair_ground_masks(points_xyz_t0, points_xyz_tm1_in_t0, cell_m: float = PAIR_GROUND_CELL_M,
+                      above_m: float = GROUND_ABOVE_M, static_band_m: float = STATIC_BAND_M,
+                      static_match_m: float = STATIC_MATCH_M) -> tuple[np.ndarray, np.ndarray]:
+    """(ground of the t0 cloud, ground of the t-1 cloud), both in the t0 frame, where their static ground coincides:
+    one surface (`ground_height_m`) from the union of the two clouds, so a ground point is ground in both alike; the
+    points within `above_m` of it; and the points up to `static_band_m` above it whose nearest point of the other
+    cloud lies within `static_match_m`. The last are raised ground the band misses (kerbs, verges, ramps): ground
+    stays where it was between two sweeps, while the lower parts of a moving object (bumpers, wheels) have moved."""
+    t0 = _checked_points(points_xyz_t0, "pair_ground_masks (t0)")
+    tm1 = _checked_points(points_xyz_tm1_in_t0, "pair_ground_masks (t-1)")
+    both = np.concatenate([t0, tm1])
+    rise_m = both[:, 2] - ground_height_m(both, cell_m) if len(both) else np.zeros(0)
+    ground = rise_m < above_m
+    band = ~ground & (rise_m < static_band_m)
+    n0 = len(t0)
+    for own, other, offset in ((t0, tm1, 0), (tm1, t0, n0)):
+        candidates = np.flatnonzero(band[offset:offset + len(own)])
+        ground[offset + candidates] = has_neighbour_within(own[candidates], other, static_match_m)
+    return ground[:n0], ground[n0:]
+
+
+def has_neighbour_within(query_xyz, target_xyz, radius_m: float) -> np.ndarray:
+    """[Q] bool: whether a target point lies within `radius_m` of each query point. The targets are hashed into cubes
+    of side `radius_m`, so a neighbour lies in one of the 27 cubes around the query's."""
+    query, target = np.asarray(query_xyz, np.float64), np.asarray(target_xyz, np.float64)
+    found = np.zeros(len(query), bool)
+    if len(query) == 0 or len(target) == 0:
+        return found
+    low = np.minimum(query.min(0), target.min(0)) - radius_m  # every cube index >= 1, so an offset of -1 is >= 0
+
+    def cubes(xyz):
+        return np.floor((xyz - low) / radius_m).astype(np.int64)
+    target_cubes, query_cubes = cubes(target), cubes(query)
+    dims = np.maximum(target_cubes.max(0), query_cubes.max(0)) + 2
+
+    def key(c):
+        return (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+    order = np.argsort(key(target_cubes), kind="stable")
+    target_keys, target = key(target_cubes)[order], target[order]
+    for offset in itertools.product((-1, 0, 1), repeat=3):
+        todo = np.flatnonzero(~found)
+        keys = key(query_cubes[todo] + np.array(offset))
+        start = np.searchsorted(target_keys, keys, "left")
+        count = np.searchsorted(target_keys, keys, "right") - start
+        pair_query = np.repeat(todo, count)
+        pair_target = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count) + np.repeat(start, count)
+        close = ((query[pair_query] - target[pair_target]) ** 2).sum(1) <= radius_m ** 2
+        found[pair_query[close]] = True
+    return found

@@ -3,14 +3,9 @@
 
 Each pair is fitted as the pseudo-label job fits it (`pseudo_records.fit_pair`: the config's `nsfp` section, by default
 the measured fit `nsfp.MEASURED_FIT_OPTIONS`; a bad fit retried with the next seed), its ground removed from both
-clouds by the job's rule (`nsfp.ground`): the pair's own masks where it carries both (Argoverse 2's map), else
-(`auto`, `height`) the local height rule of `ff3d_tf.labels.ground`, which needs no map, applied here to the union of
-the two clouds (`joint_height_ground_masks`): both are in the t0 vehicle frame, where their static ground coincides,
-so one ground surface serves both and a ground point is ground in both clouds alike; its columns are wider than the
-rule's default (`JOINT_GROUND_CELL_M`). (The pseudo-label job's rule, each cloud's surface on its own in the
-default columns, calls more of the Argoverse 2 sample pair's points ground that the map does not:
-benchmarks/own_records_cpu.json, `av2_sample_as_files.ground`; such points leave the fit. Where the map's ground is
-known, as in Argoverse 2 records, it is used.) What the predictor returns for the pair's t0 points:
+clouds by the job's rule (`nsfp.ground`, `pseudo_records.ground_masks`): the pair's own masks where it carries both
+(Argoverse 2's map), else (`auto`, `height`) the local height rule for the pair, which needs no map
+(`ground.pair_ground_masks`). What the predictor returns for the pair's t0 points:
 - a fitted point: its NSFP flow (m/s, t0 vehicle frame, motion from the partner cloud to t0 over the pair's gap);
 - a ground point inside the fitted region: flow 0, a prediction (ground does not move);
 - a point outside the fitted region (the crop: by default |x|, |y| <= 35 m and z in [-3, 3] m), faster than
@@ -32,24 +27,9 @@ import numpy as np
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pair_records
 from ff3d_tf.labels import pseudo_records
-from ff3d_tf.labels.ground import GROUND_ABOVE_M, height_ground_mask
 from ff3d_tf.labels.nsfp import keep_mask
 from ff3d_tf.predictor import Predictor
 
-
-# The height rule's columns for the joint surface: longer than a car (so a column rarely holds an object and no road),
-# where the rule's default (`ground.GROUND_CELL_M`) counts the lower parts of objects and curbs as ground more often.
-JOINT_GROUND_CELL_M = 8.0
-
-
-def joint_height_ground_masks(points_xyz_t0: np.ndarray, points_xyz_tm1_in_t0: np.ndarray
-                              ) -> tuple[np.ndarray, np.ndarray]:
-    """(ground of the t0 cloud, ground of the t-1 cloud): the height rule (`height_ground_mask`, columns of
-    `JOINT_GROUND_CELL_M`, ground within its `GROUND_ABOVE_M` of the surface) on the union of both clouds, in the t0
-    vehicle frame."""
-    both = height_ground_mask(np.concatenate([points_xyz_t0, points_xyz_tm1_in_t0]), cell_m=JOINT_GROUND_CELL_M,
-                              above_m=GROUND_ABOVE_M)
-    return both[: len(points_xyz_t0)], both[len(points_xyz_t0):]
 
 
 class NsfpPredictor(Predictor):
@@ -78,13 +58,11 @@ class NsfpPredictor(Predictor):
         for key, n in (("is_ground_t0", n0), ("is_ground_tm1", n1)):
             if key in example:
                 ex[key] = np.asarray(example[key], bool)[:n]
-        job, ground_rule = self.job, self.job.ground
-        if ground_rule == "height" or (ground_rule == "auto" and not ("is_ground_t0" in ex and "is_ground_tm1" in ex)):
-            ex["is_ground_t0"], ex["is_ground_tm1"] = joint_height_ground_masks(ex["points_xyz_t0"],
-                                                                                ex["points_xyz_tm1_in_t0"])
-            job, ground_rule = dataclasses.replace(job, ground="records"), "height (one surface for both clouds)"
-        elif ground_rule == "auto":
-            job, ground_rule = dataclasses.replace(job, ground="records"), "records"
+        job = self.job
+        ground_t0, ground_tm1, ground_rule = pseudo_records.ground_masks(ex, job.ground)  # the job's rule
+        if ground_t0 is not None:
+            ex["is_ground_t0"], ex["is_ground_tm1"] = ground_t0, ground_tm1
+            job = dataclasses.replace(job, ground="records")
         started, index = time.perf_counter(), self.pairs_fitted
 
         def progress(steps, loss):

@@ -19,8 +19,8 @@ python -m ff3d_tf.labels.own_records_bench --out benchmarks/own_records_cpu.json
   left of the error in each case is the other set's.
 - `sample_ground`: the pair's ground without a map against Argoverse 2's map ground (the challenge's), inside the
   fit's crop (`nsfp.keep_mask`), both clouds: points called ground that the map does not (removed from the fit; given
-  flow 0) and map ground left in the fit, for the predictor's rule (`nsfp_predictor.joint_height_ground_masks`) and
-  the pseudo-label job's (`pseudo_records.ground_masks`, rule `height`: each cloud on its own).
+  flow 0) and map ground left in the fit, for the rule of the predictor and the pseudo-label job
+  (`ground.pair_ground_masks`).
 """
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pair_records
 from ff3d_tf.data.av2 import argoverse2
 from ff3d_tf.data.files import box_table, sequences
-from ff3d_tf.labels import av2, av2_sequences, nsfp, nsfp_predictor, own_records, pseudo_records
+from ff3d_tf.labels import av2, av2_sequences, ground, nsfp, own_records
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")
@@ -150,7 +150,7 @@ def _where_the_error_lies(log_dir: str, flow: np.ndarray, valid: np.ndarray) -> 
     """Three-way EPE with the truth put in on the points the fit did not predict, and on those it did (module
     docstring)."""
     ex = _sample_pair(log_dir)
-    ground_t0, _ = nsfp_predictor.joint_height_ground_masks(ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"])
+    ground_t0, _ = ground.pair_ground_masks(ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"])
     fitted = valid & ~(ground_t0 & nsfp.keep_mask(ex["points_xyz_t0"], nsfp.MEASURED_FIT_OPTIONS))
     # the truth as predict's flow: m/s over the gap the scores read it with
     truth = ex["flow_mps_t0"] * pair_records.pair_gap_s(ex) / sequences.DEFAULT_SWEEP_PERIOD_S
@@ -166,21 +166,17 @@ def sample_ground(log_dir: str = AV2_LOG) -> dict:
     """The no-map ground rules against the map's ground on the sample pair (module docstring)."""
     ex = _sample_pair(log_dir)
     clouds = (("t0", ex["points_xyz_t0"], ex["is_ground_t0"]), ("tm1", ex["points_xyz_tm1_in_t0"], ex["is_ground_tm1"]))
-    rules = {"predictor_one_surface_for_both_clouds": nsfp_predictor.joint_height_ground_masks(
-                 ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"]),
-             "pseudo_label_job_height_each_cloud": pseudo_records.ground_masks(
-                 {"points_xyz_t0": ex["points_xyz_t0"], "points_xyz_tm1_in_t0": ex["points_xyz_tm1_in_t0"]},
-                 "height")[:2]}
+    rules = {"height_rule_of_the_pair": ground.pair_ground_masks(ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"])}
     out = {"map_ground_in_crop": {}}
     for name, xyz, on_map in clouds:
         keep = nsfp.keep_mask(xyz, nsfp.MEASURED_FIT_OPTIONS)
         out["map_ground_in_crop"][name] = {"points_in_crop": int(keep.sum()), "map_ground": int((keep & on_map).sum())}
     for rule, masks in rules.items():
         out[rule] = {}
-        for (name, xyz, on_map), ground in zip(clouds, masks):
+        for (name, xyz, on_map), called in zip(clouds, masks):
             keep = nsfp.keep_mask(xyz, nsfp.MEASURED_FIT_OPTIONS)
-            out[rule][name] = {"ground_not_on_map": int((keep & ground & ~on_map).sum()),
-                               "map_ground_not_called_ground": int((keep & ~ground & on_map).sum())}
+            out[rule][name] = {"ground_not_on_map": int((keep & called & ~on_map).sum()),
+                               "map_ground_not_called_ground": int((keep & ~called & on_map).sum())}
     return out
 
 

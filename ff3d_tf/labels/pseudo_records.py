@@ -44,7 +44,7 @@ from ff3d_tf.config import ConfigError, ExperimentConfig, NsfpConfig, nsfp_optio
 from ff3d_tf.data import beam_job, pair_records, wod_errors
 from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.labels import nsfp_av2_check
-from ff3d_tf.labels.ground import height_ground_mask
+from ff3d_tf.labels.ground import pair_ground_masks
 from ff3d_tf.labels.nsfp import MEASURED_FIT_OPTIONS, NsfpOptions, NsfpResult, nsfp_flow, options_from_config
 
 _LOG = logging.getLogger(__name__)
@@ -174,7 +174,7 @@ def ground_masks(ex: dict, rule: str) -> tuple[np.ndarray | None, np.ndarray | N
     if rule == "records" or (rule == "auto" and both):
         return np.asarray(ex["is_ground_t0"], bool), np.asarray(ex["is_ground_tm1"], bool), "records"
     if rule in ("auto", "height"):
-        return height_ground_mask(ex["points_xyz_t0"]), height_ground_mask(ex["points_xyz_tm1_in_t0"]), "height"
+        return (*pair_ground_masks(ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"]), "height")
     return None, None, "none"
 
 

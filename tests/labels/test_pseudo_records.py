@@ -60,9 +60,9 @@ def test_output_holds_the_nsfp_flow_beside_the_input(records, tmp_path):
         # The pseudo-labels are NSFP's fit of this pair (same options, same seed: deterministic) without the ground
         # of either cloud (WOD records carry no ground mask: the height rule), labelled where the fit saw the point.
         dt_s = (int(w["timestamp_ns_t0"]) - int(w["timestamp_ns_partner"])) * 1e-9
-        fit = nsfp.nsfp_flow(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"], dt_s, OPTIONS,
-                             keep_t0=~ground.height_ground_mask(w["points_xyz_t0"]),
-                             keep_tm1=~ground.height_ground_mask(w["points_xyz_tm1_in_t0"]))
+        ground_t0, ground_tm1 = ground.pair_ground_masks(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"])
+        fit = nsfp.nsfp_flow(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"], dt_s, OPTIONS, keep_t0=~ground_t0,
+                             keep_tm1=~ground_tm1)
         np.testing.assert_array_equal(g["pseudo_valid_t0"], fit.valid_t0)
         assert 0 < fit.valid_t0.sum() < len(fit.valid_t0)  # ground and points beyond 8 m have no pseudo-label
         np.testing.assert_array_equal(g["flow_mps_pseudo_t0"], np.where(fit.valid_t0[:, None], fit.flow_mps_t0, 0))
@@ -183,8 +183,8 @@ def test_ground_is_taken_from_both_clouds_by_one_rule():
     assert rule == "records" and (g0 == ex["is_ground_t0"]).all() and (g1 == ex["is_ground_tm1"]).all()
     only_t0 = {k: v for k, v in ex.items() if k != "is_ground_tm1"}  # records of an older writer
     g0, g1, rule = pseudo_records.ground_masks(only_t0, "auto")
-    assert rule == "height" and (g0 == ground.height_ground_mask(ex["points_xyz_t0"])).all()
-    assert (g1 == ground.height_ground_mask(ex["points_xyz_tm1_in_t0"])).all()
+    pair = ground.pair_ground_masks(ex["points_xyz_t0"], ex["points_xyz_tm1_in_t0"])  # one surface for the two
+    assert rule == "height" and (g0 == pair[0]).all() and (g1 == pair[1]).all()
     with pytest.raises(ValueError, match="ground=records: these records carry no ground mask of both clouds"):
         pseudo_records.ground_masks(only_t0, "records")
     assert pseudo_records.ground_masks(ex, "none") == (None, None, "none")

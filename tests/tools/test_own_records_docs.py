@@ -28,8 +28,8 @@ def quotes() -> list[str]:
     sample = bench["av2_sample_as_files"]
     labels, nsfp, ground = sample["labels"], sample["nsfp"], sample["ground"]
     speed, where = bench["records_speed"], nsfp["where_the_error_lies"]
-    mine = ground["predictor_one_surface_for_both_clouds"]["t0"]
-    job = ground["pseudo_label_job_height_each_cloud"]["t0"]
+    rule = ground["height_rule_of_the_pair"]["t0"]
+    bar = reference["av2_sample"]["bar_at_most"]
     return [
         f"labels {labels['same_label_share']:.1%} of the {labels['points']:,} points of its second sweep as the "
         f"Argoverse 2 path does (the same class, and flow within 1 mm/s; {labels['object_points']:,} of them in "
@@ -39,15 +39,17 @@ def quotes() -> list[str]:
         f"Argoverse 2 records path's pseudo-labels, with the map's ground, "
         f"{reference['av2_sample']['nsfp']['three_way/mean_epe_m']:.3f} m: `benchmarks/nsfp_cpu.json`), after "
         f"{nsfp['fit_steps']:,} steps and {nsfp['fit_seconds']:,.0f} s of fitting on {_machine(bench)}.",
+        f"its bucketed normalized dynamic EPE, {nsfp['bucketed_dynamic_norm_epe']:.3f}, is "
+        f"{'above' if nsfp['bucketed_dynamic_norm_epe'] > bar['bucketed/mean_dynamic_norm_epe'] else 'within'} that "
+        f"bar's {bar['bucketed/mean_dynamic_norm_epe']:.3f}.",
         f"{nsfp['evaluated_points_without_prediction']:,} of the evaluated points have no prediction (above the "
         "fit's crop; zero flow in the challenge's arithmetic), as "
         f"{reference['av2_sample']['evaluated_points_without_pseudo_label']:,} have none in the records path. With "
         "the true flow put in on every point the fit did not predict (those, and the ground rule's), the score is "
         f"{where['truth_where_not_fitted_three_way_epe_m']:.3f} m; with it put in on the fitted points, "
         f"{where['truth_where_fitted_three_way_epe_m']:.4f} m.",
-        f"calls {mine['ground_not_on_map']:,} points of the t0 cloud's crop ground that the map does not, and leaves "
-        f"{mine['map_ground_not_called_ground']:,} of the map's ground in the fit (the pseudo-label job's rule, each "
-        f"cloud on its own: {job['ground_not_on_map']:,} and {job['map_ground_not_called_ground']:,}).",
+        f"calls {rule['ground_not_on_map']:,} points of the t0 cloud's crop ground that the map does not, and leaves "
+        f"{rule['map_ground_not_called_ground']:,} of the map's ground in the fit.",
         f"Records of {speed['points_per_sweep']:,}-point sweeps are written at "
         f"{speed['with_boxes']['pairs_per_cpu_s']:.1f} pairs per CPU second with a box table of "
         f"{speed['boxes_per_sweep']} boxes a sweep and {speed['without_boxes']['pairs_per_cpu_s']:.1f} without "
