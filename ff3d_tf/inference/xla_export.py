@@ -120,29 +120,26 @@ def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir:
         raise ValueError(f"points must be positive cloud sizes, got {list(points)}")
     manifest = xla_export_dir.new_export(cfg, model, out_dir, platforms, weights_source)
     written: dict[str, int] = {}
-    for precision in precisions:
-        tracer = tracing_model(cfg, precision, model)
-        for n in points:
+
+    def write(tracer, precision: str, sizes: Sequence[int], file_name, entries: list, **extra) -> None:
+        """One artifact per bucket of `sizes` (a bucket written once), an entry per size."""
+        for n in sizes:
             padded = bucket_size(n, cfg.data.point_bucket_base)
-            name = xla_artifact.artifact_name(padded, precision)
+            name = file_name(padded, precision)
             if name not in written:
                 written[name] = xla_program.write_program(out_dir, name, forward_hlo(tracer, batch_size, padded,
                                                                            tf32=precision == "tf32"), platforms, log)
-            manifest["artifacts"].append({"points": int(n), "padded_points": padded, "batch_size": batch_size,
-                                          "precision": precision, "file": name, "bytes": written[name]})
+            entries.append({"points": int(n), "padded_points": padded, "batch_size": batch_size,
+                            "precision": precision, "file": name, "bytes": written[name], **extra})
+
+    for precision in precisions:
+        write(tracing_model(cfg, precision, model), precision, points, xla_artifact.artifact_name,
+              manifest["artifacts"])
     for variant in variants:
         entries = manifest.setdefault("variants", {}).setdefault(variant, [])
         for precision in variant_precisions or precisions:
-            tracer = variant_model(cfg, precision, model, variant)
-            for n in variant_points or points:
-                padded = bucket_size(n, cfg.data.point_bucket_base)
-                name = variant_file(padded, precision, variant)
-                if name not in written:
-                    written[name] = xla_program.write_program(
-                        out_dir, name, forward_hlo(tracer, batch_size, padded, tf32=precision == "tf32"), platforms,
-                        log)
-                entries.append({"points": int(n), "padded_points": padded, "batch_size": batch_size,
-                                "precision": precision, "file": name, "bytes": written[name], "variant": variant})
+            write(variant_model(cfg, precision, model, variant), precision, variant_points or points,
+                  lambda padded, p, v=variant: variant_file(padded, p, v), entries, variant=variant)
     if reference:
         xla_export_dir.add_reference(out_dir, _reference(model, manifest, np.random.default_rng(0)))
     xla_export_dir.write_manifest(out_dir, manifest)

@@ -23,7 +23,7 @@ import numpy as np
 
 from ff3d_tf import bench
 from ff3d_tf.inference.xla_artifact import CompiledForward, load_forward
-from ff3d_tf.inference.xla_timing import time_forward
+from ff3d_tf.inference.xla_timing import _block, time_forward
 from ff3d_tf.xla_export_dir import ExportFormatError, load_weights, random_inputs, read_manifest
 
 CATEGORIES = ("convolution", "matrix product", "scatter", "gather", "reduction", "copy", "elementwise", "other")
@@ -133,10 +133,9 @@ def device_events(xspace_path: str) -> tuple[list[tuple[str, str, float]], str]:
     return events, ("GPU stream kernels" if gpu else "CPU thunks")
 
 
-def trace(fn, runs: int) -> str:
-    """Runs `fn` `runs` times under JAX's profiler; returns the trace's xspace file."""
+def trace(fn, runs: int, out_dir: str) -> str:
+    """Runs `fn` `runs` times under JAX's profiler, writing under `out_dir`; returns the trace's xspace file."""
     import jax
-    out_dir = tempfile.mkdtemp(prefix="ff3d_xla_profile_")
     with jax.profiler.trace(out_dir):
         for _ in range(runs):
             fn()
@@ -151,7 +150,8 @@ def op_profile(compiled, fn, runs: int, top: int = 40) -> dict:
     text = compiled.as_text()
     hlo = parse_hlo(text)
     module = re.match(r"HloModule\s+([\w.\-]+)", text)
-    events, source = device_events(trace(fn, runs))
+    with tempfile.TemporaryDirectory(prefix="ff3d_xla_profile_") as out_dir:
+        events, source = device_events(trace(fn, runs, out_dir))
     if module is not None and any(m == module.group(1) for _, m, _ in events):
         events = [e for e in events if e[1] == module.group(1)]
     per_op = collections.defaultdict(lambda: [0.0, 0])
@@ -250,11 +250,6 @@ def _profile_or_error(forward, device_inputs, trace_runs: int) -> dict:
         return op_profile(forward.compiled, lambda: _block(forward(device_inputs)), trace_runs)
     except Exception as e:  # noqa: BLE001  (the profiler's own errors: the timing row stays)
         return {"error": f"{type(e).__name__}: {e}"}
-
-
-def _block(outputs):
-    for x in outputs:
-        x.block_until_ready()
 
 
 def describe(row: dict) -> str:

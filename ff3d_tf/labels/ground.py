@@ -64,7 +64,7 @@ def height_ground_mask(points_xyz, cell_m: float = GROUND_CELL_M, above_m: float
                        percentile: float = GROUND_PERCENTILE, min_points: int = GROUND_MIN_POINTS) -> np.ndarray:
     """[N] bool: the points within `above_m` of their interpolated ground height (module docstring)."""
     xyz = _checked_points(points_xyz, "height_ground_mask")
-    return xyz[:, 2] < ground_height_m(xyz, cell_m, percentile, min_points) + above_m
+    return xyz[:, 2] < _ground_height_m(xyz, cell_m, percentile, min_points) + above_m
 
 
 def _checked_points(points_xyz, what: str) -> np.ndarray:
@@ -76,10 +76,10 @@ def _checked_points(points_xyz, what: str) -> np.ndarray:
     return xyz
 
 
-def ground_height_m(points_xyz, cell_m: float = GROUND_CELL_M, percentile: float = GROUND_PERCENTILE,
-                    min_points: int = GROUND_MIN_POINTS) -> np.ndarray:
-    """[N] the interpolated ground height (m) under each point (module docstring)."""
-    xyz = _checked_points(points_xyz, "ground_height_m")
+def _ground_height_m(xyz: np.ndarray, cell_m: float, percentile: float = GROUND_PERCENTILE,
+                     min_points: int = GROUND_MIN_POINTS) -> np.ndarray:
+    """[N] the interpolated ground height (m) under each point (module docstring) of points already checked
+    (`_checked_points`)."""
     if len(xyz) == 0:
         return np.zeros(0)
     low = xyz[:, :2].min(0)
@@ -107,14 +107,14 @@ def pair_ground_masks(points_xyz_t0, points_xyz_tm1_in_t0, cell_m: float = PAIR_
                       above_m: float = GROUND_ABOVE_M, static_band_m: float = STATIC_BAND_M,
                       static_match_m: float = STATIC_MATCH_M) -> tuple[np.ndarray, np.ndarray]:
     """(ground of the t0 cloud, ground of the t-1 cloud), both in the t0 frame, where their static ground coincides:
-    one surface (`ground_height_m`) from the union of the two clouds, so a ground point is ground in both alike; the
+    one surface (`_ground_height_m`) from the union of the two clouds, so a ground point is ground in both alike; the
     points within `above_m` of it; and the points up to `static_band_m` above it whose nearest point of the other
     cloud lies within `static_match_m`. The last are raised ground the band misses (kerbs, verges, ramps): ground
     stays where it was between two sweeps, while the lower parts of a moving object (bumpers, wheels) have moved."""
     t0 = _checked_points(points_xyz_t0, "pair_ground_masks (t0)")
     tm1 = _checked_points(points_xyz_tm1_in_t0, "pair_ground_masks (t-1)")
     both = np.concatenate([t0, tm1])
-    rise_m = both[:, 2] - ground_height_m(both, cell_m) if len(both) else np.zeros(0)
+    rise_m = both[:, 2] - _ground_height_m(both, cell_m)
     ground = rise_m < above_m
     band = ~ground & (rise_m < static_band_m)
     n0 = len(t0)
