@@ -862,53 +862,59 @@ def _target(what, figure, goal, fmt, at_least):
     return what, figure, Calc(fmt, lambda g: g, (goal,)), met
 
 
-CPU_TARGETS_TABLE = Table(
-    B, Quote(B, "The issue's figures on {} (PyTorch FastFlow3D: {} ms a training step, {} GB peak, {} ms and {} ms "
-                "a forward at 32,000 and 1,000,000 points; ff3d_tf before: {} ms, {} GB, {} ms and {} ms), scaled by "
-                "the after / before ratios of `auto` in the tables above (by wall time, and by CPU time where named); "
-                "the forward's ratio of point counts is the table's own:",
-             (V(_CS, "peer/cpu"), V(_CS, "peer/peer/train_step_32000_ms", "{:,.0f}"),
-              V(_CS, "peer/peer/train_step_32000_peak_gb", "{:.2f}"), V(_CS, "peer/peer/forward_32000_ms", "{:,.0f}"),
-              V(_CS, "peer/peer/forward_1000000_ms", "{:,.0f}"),
-              V(_CS, "peer/ff3d_tf_before/train_step_32000_ms", "{:,.0f}"),
-              V(_CS, "peer/ff3d_tf_before/train_step_32000_peak_gb", "{:.2f}"),
-              V(_CS, "peer/ff3d_tf_before/forward_32000_ms", "{:,.0f}"),
-              V(_CS, "peer/ff3d_tf_before/forward_1000000_ms", "{:,.0f}"))),
-    ("figure", "ff3d_tf after", "target", "met"), "lrrl",
-    (_target("training step, 32,000 points: speed-up over the peer",
-             V(_CS, "projection_zen3/train_step_speedup_over_peer", "{:.2f}x"),
-             V(_CS, "targets/train_step_speedup_over_peer"), "{:.2f}x", True),
-     _target("the same by CPU time", V(_CS, "projection_zen3/train_step_speedup_over_peer_by_cpu_time", "{:.2f}x"),
-             V(_CS, "targets/train_step_speedup_over_peer"), "{:.2f}x", True),
-     _target("training step, 32,000 points: peak memory",
-             V(_CS, "projection_zen3/train_step_32000_peak_gb", "{:.2f} GB"), V(_CS, "targets/train_step_peak_gb"),
-             "{:.2f} GB", False),
-     _target("forward, 32,000 points: speed-up over the peer",
-             V(_CS, "projection_zen3/forward_32000_speedup_over_peer", "{:.2f}x"),
-             V(_CS, "targets/forward_32000_speedup_over_peer"), "{:.2f}x", True),
-     _target("the same by CPU time",
-             V(_CS, "projection_zen3/forward_32000_speedup_over_peer_by_cpu_time", "{:.2f}x"),
-             V(_CS, "targets/forward_32000_speedup_over_peer"), "{:.2f}x", True),
-     _target("forward, 1,000,000 points: speed-up over the peer",
-             V(_CS, "projection_zen3/forward_1000000_speedup_over_peer", "{:.2f}x"),
-             V(_CS, "targets/forward_1000000_speedup_over_peer"), "{:.2f}x", True),
-     _target("the same by CPU time",
-             V(_CS, "projection_zen3/forward_1000000_speedup_over_peer_by_cpu_time", "{:.2f}x"),
-             V(_CS, "targets/forward_1000000_speedup_over_peer"), "{:.2f}x", True),
-     _target("forward: time at 1,000,000 points / time at 32,000 points",
-             V(_CS, ("summary", "forward/auto", "after", "t1m_over_t32k"), "{:.2f}"),
-             V(_CS, "targets/forward_1m_over_32k"), "{:.2f}", False)))
-TABLES += (CPU_STEP_TABLE, CPU_STAGES_TABLE, CPU_FORWARD_TABLE, CPU_TARGETS_TABLE)
+def _targets_table(file):
+    """The issue's targets against `file`'s projection onto its Zen 3 figures (`projection_zen3`)."""
+    return Table(
+        B, Quote(B, "The issue's figures on {} (PyTorch FastFlow3D: {} ms a training step, {} GB peak, {} ms and "
+                    "{} ms a forward at 32,000 and 1,000,000 points; ff3d_tf before: {} ms, {} GB, {} ms and {} ms), "
+                    "scaled by the after / before ratios of `auto` in `benchmarks/" + file + "` (by wall time, and "
+                    "by CPU time where named); the forward's ratio of point counts is the run's own:",
+                 (V(file, "peer/cpu"), V(file, "peer/peer/train_step_32000_ms", "{:,.0f}"),
+                  V(file, "peer/peer/train_step_32000_peak_gb", "{:.2f}"),
+                  V(file, "peer/peer/forward_32000_ms", "{:,.0f}"),
+                  V(file, "peer/peer/forward_1000000_ms", "{:,.0f}"),
+                  V(file, "peer/ff3d_tf_before/train_step_32000_ms", "{:,.0f}"),
+                  V(file, "peer/ff3d_tf_before/train_step_32000_peak_gb", "{:.2f}"),
+                  V(file, "peer/ff3d_tf_before/forward_32000_ms", "{:,.0f}"),
+                  V(file, "peer/ff3d_tf_before/forward_1000000_ms", "{:,.0f}"))),
+        ("figure", "ff3d_tf after", "target", "met"), "lrrl",
+        (_target("training step, 32,000 points: speed-up over the peer",
+                 V(file, "projection_zen3/train_step_speedup_over_peer", "{:.2f}x"),
+                 V(file, "targets/train_step_speedup_over_peer"), "{:.2f}x", True),
+         _target("the same by CPU time",
+                 V(file, "projection_zen3/train_step_speedup_over_peer_by_cpu_time", "{:.2f}x"),
+                 V(file, "targets/train_step_speedup_over_peer"), "{:.2f}x", True),
+         _target("training step, 32,000 points: peak memory",
+                 V(file, "projection_zen3/train_step_32000_peak_gb", "{:.2f} GB"),
+                 V(file, "targets/train_step_peak_gb"),
+                 "{:.2f} GB", False),
+         _target("forward, 32,000 points: speed-up over the peer",
+                 V(file, "projection_zen3/forward_32000_speedup_over_peer", "{:.2f}x"),
+                 V(file, "targets/forward_32000_speedup_over_peer"), "{:.2f}x", True),
+         _target("the same by CPU time",
+                 V(file, "projection_zen3/forward_32000_speedup_over_peer_by_cpu_time", "{:.2f}x"),
+                 V(file, "targets/forward_32000_speedup_over_peer"), "{:.2f}x", True),
+         _target("forward, 1,000,000 points: speed-up over the peer",
+                 V(file, "projection_zen3/forward_1000000_speedup_over_peer", "{:.2f}x"),
+                 V(file, "targets/forward_1000000_speedup_over_peer"), "{:.2f}x", True),
+         _target("the same by CPU time",
+                 V(file, "projection_zen3/forward_1000000_speedup_over_peer_by_cpu_time", "{:.2f}x"),
+                 V(file, "targets/forward_1000000_speedup_over_peer"), "{:.2f}x", True),
+         _target("forward: time at 1,000,000 points / time at 32,000 points",
+                 V(file, ("summary", "forward/auto", "after", "t1m_over_t32k"), "{:.2f}"),
+                 V(file, "targets/forward_1m_over_32k"), "{:.2f}", False)))
+TABLES += (CPU_STEP_TABLE, CPU_STAGES_TABLE, CPU_FORWARD_TABLE)
 
 # -- the training step's memory per start-up setting (benchmark_cpu_step.py --jobs train --settings ...): glibc's
 # malloc arenas (after_default_arenas: without the start-up's limit) and the encoder recomputed (after_remat)
 _STEP_SETTINGS = {"before": "before (TensorFlow's own start-up, `auto` = hybrid)",
                   "after": "after (the tools' start-up, `auto` per job)",
                   "after_remat": "after, `model.remat_encoder=true`",
-                  "after_default_arenas": "after, glibc's own malloc arenas (no `MALLOC_ARENA_MAX`)"}
+                  "after_default_arenas": "after, glibc's own malloc arenas (no `MALLOC_ARENA_MAX`)",
+                  "after_plain_convolutions": "after, the convolutions in their plain forms"}
 
 
-def _settings_table(file, settings):
+def _settings_table(file, settings, jobs="train"):
     """The training step of each of `settings` in `file`, measured and projected onto the issue's Zen 3 figures
     (`projection_zen3`: "after"'s at its top level, another setting's under its own key; "before" is the issue's)."""
     def projected(setting, key, fmt):
@@ -917,7 +923,7 @@ def _settings_table(file, settings):
         return V(file, ("projection_zen3",) + (() if setting == "after" else (setting,)) + (key,), fmt)
 
     return Table(
-        B, Quote(B, f"`tools/benchmark_cpu_step.py --jobs train --modes auto --settings {','.join(settings)} --rounds "
+        B, Quote(B, f"`tools/benchmark_cpu_step.py --jobs {jobs} --modes auto --settings {','.join(settings)} --rounds "
                     f"{{}} --no_stages` (`benchmarks/{file}`), paper config, {{}} points, batch 1, the "
                     "middle over the rounds (`bench.middle`: of two, the larger) of the median of {} steps after {} "
                     "warm-up steps; {} ({} cores), oneDNN and XLA "
@@ -939,7 +945,33 @@ def _settings_table(file, settings):
 
 
 MEMORY_TABLE = _settings_table("cpu_step_avx2_memory.json", ("before", "after", "after_default_arenas", "after_remat"))
-TABLES += (MEMORY_TABLE,)
+_CF = "cpu_step_avx2_convolutions.json"
+CONV_FORMS_TABLE = _settings_table(_CF, ("before", "after", "after_plain_convolutions"), jobs="train,forward")
+CONV_FORMS_FORWARD_TABLE = Table(
+    B, Quote(B, "The forward in the same run (`--jobs forward`, `auto`), the middle over the rounds of the median of "
+                "{} calls after {} warm-up calls, both point counts in one process:",
+             (V(_CF, "runs"), V(_CF, "warmup"))),
+    ("setting", "runs", "32,000 points", "1,000,000 points", "ratio"), "llrrr",
+    tuple((_STEP_SETTINGS[setting], V(_CF, ("summary", "forward/auto", setting, "mode")),
+           V(_CF, ("summary", "forward/auto", setting, "median_ms", "32000"), "{:,.0f} ms"),
+           V(_CF, ("summary", "forward/auto", setting, "median_ms", "1000000"), "{:,.0f} ms"),
+           V(_CF, ("summary", "forward/auto", setting, "t1m_over_t32k"), "{:.2f}"))
+          for setting in ("before", "after", "after_plain_convolutions")))
+_CZ = "cpu_step_zen4_convolutions.json"
+CONV_FORMS_OWN_ISA_TABLE = Table(
+    B, Quote(B, "`tools/benchmark_cpu_step.py --cap none --jobs train,forward --modes auto --settings "
+                "after,after_plain_convolutions --rounds {} --no_stages` (`benchmarks/{}`), the same figures on {} "
+                "({} cores, family/model {}) with its own kernels (TensorFlow's oneDNN operations on, AVX-512):",
+             (V(_CZ, "rounds"), _CZ, V(_CZ, "cpu/model_name"), V(_CZ, "cpu/cpu_count"), V(_CZ, "cpu/family_model"))),
+    ("setting", "runs", "training step", "peak", "forward, 32,000 points", "forward, 1,000,000 points"), "llrrrr",
+    tuple((_STEP_SETTINGS[setting], V(_CZ, ("summary", "train/auto", setting, "mode")),
+           V(_CZ, ("summary", "train/auto", setting, "step_median_ms"), "{:,.0f} ms"),
+           V(_CZ, ("summary", "train/auto", setting, "peak_rss_gb"), "{:.2f} GB"),
+           V(_CZ, ("summary", "forward/auto", setting, "median_ms", "32000"), "{:,.0f} ms"),
+           V(_CZ, ("summary", "forward/auto", setting, "median_ms", "1000000"), "{:,.0f} ms"))
+          for setting in ("after", "after_plain_convolutions")))
+CPU_TARGETS_TABLE = _targets_table(_CF)
+TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_OWN_ISA_TABLE, CPU_TARGETS_TABLE)
 
 # -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
 _HC = "head_cost_cpu.json"

@@ -5,7 +5,8 @@ python tools/profile_stages.py --config configs/fastflow3d_waymo.yaml --points 3
 Stages are timed alone, interleaved round robin (ratios within one run are what to compare on a shared machine):
   encode  rows A-B (pillarize, point encoder, scatter), XLA, graph, and hybrid (compile mode hybrid's layout: each
           cloud's encoding and scatter its own XLA program, the two run at once, `compile.hybrid_encode`);
-  dense   rows C-V (convolutions), XLA and graph (oneDNN on CPU);
+  dense   rows C-V (convolutions; with the paper head, and its grid part: `FastFlow3D.grid_stages`), XLA and
+          graph (oneDNN on CPU);
   decode  rows W-Z (ungrid, head), XLA and graph.
 With --trace_dir, each --profile_modes forward and training step at the first point count is traced with
 tf.profiler.experimental and the ops that took the most time are listed (op type, total ms, share).
@@ -32,7 +33,7 @@ def stage_times(model, inputs: dict, runs: int) -> dict:
     fns = {}
     for backend, jit in (("xla", True), ("graph", False)):
         fns[f"encode/{backend}"] = tf.function(lambda x: model.encode_points(x), jit_compile=jit)
-        fns[f"dense/{backend}"] = tf.function(lambda b: model.dense_stages(b), jit_compile=jit)
+        fns[f"dense/{backend}"] = tf.function(lambda b: model.grid_stages(b), jit_compile=jit)
         fns[f"decode/{backend}"] = tf.function(lambda g, e: model.decode_points(g, e), jit_compile=jit)
     fns["encode/hybrid"] = tf.function(lambda x: compile_lib.hybrid_encode(model.encode_points, x, False))
     encoded = fns["encode/xla"](inputs)

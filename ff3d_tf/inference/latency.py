@@ -101,13 +101,13 @@ def conv_floor_key(backend: str, precision: str) -> str:
 
 
 def conv_floor_calls(models_by_precision: dict, bev_features: tf.Tensor) -> dict:
-    """{conv floor name: call} of each {resolved precision: model}: `model.dense_stages(bev_features)` as graph kernels
+    """{conv floor name: call} of each {resolved precision: model}: `model.grid_stages(bev_features)` as graph kernels
     and, in float32, as one XLA program. `bev_features`: [2, H, W, C], both frames of one pair stacked."""
     calls = {}
     for precision, model in models_by_precision.items():
-        dense = {"graph": tf.function(lambda x, model=model: model.dense_stages(x))}
+        dense = {"graph": tf.function(lambda x, model=model: model.grid_stages(x))}
         if precision == "float32":
-            dense["xla"] = tf.function(lambda x, model=model: model.dense_stages(x), jit_compile=True)
+            dense["xla"] = tf.function(lambda x, model=model: model.grid_stages(x), jit_compile=True)
         calls.update({conv_floor_key(backend, precision): (lambda f=f: f(bev_features))
                       for backend, f in sorted(dense.items())})
     return calls

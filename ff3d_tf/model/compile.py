@@ -118,6 +118,30 @@ def check_resolved(mode: str) -> str:
     return mode
 
 
+# How the model computes its convolutions: "fast" (the default: `layers.Conv2D`'s forms and, with the paper head, row V
+# composed with the head's grid part, `FastFlow3D.grid_stages`) or "plain" (Keras's convolutions as they are and row V
+# apart from the head, the layout before; kept for the studies that compare the two).
+CONVOLUTION_FORMS = ("fast", "plain")
+convolution_forms = "fast"
+
+
+def fast_convolutions() -> bool:
+    """Whether `convolution_forms` is "fast" (ValueError for a value not in CONVOLUTION_FORMS)."""
+    if convolution_forms not in CONVOLUTION_FORMS:
+        raise ValueError(f"convolution_forms={convolution_forms!r}: one of {', '.join(CONVOLUTION_FORMS)}")
+    return convolution_forms == "fast"
+
+
+def strided_gradients_by_phases(mode: str, device_type: str | None = None) -> bool:
+    """Whether the stride-2 convolutions (rows C, G, M) compute their gradients phase by phase (`layers.Conv2D`,
+    `ops.conv2d_stride2`): where XLA compiles the convolutions (mode xla) on a CPU (`device_type`, default the visible
+    accelerator). XLA's CPU backend computes a strided convolution's input gradient by dilating the output gradient
+    with zeros, several times slower than the same arithmetic as stride-1 convolutions on the phases
+    (benchmarks/cpu_step_avx2_convolutions.json). TensorFlow's own kernels (modes hybrid and none) and GPUs keep
+    the plain gradient."""
+    return check_resolved(mode) == "xla" and (device_type or accelerator_type()) == "CPU"
+
+
 def describe(mode: str) -> str:
     """One line saying what runs where in a resolved mode (printed at start, recorded with benchmarks)."""
     return {"xla": "whole forward and training step in one XLA program",

@@ -93,6 +93,7 @@ class FastFlow3D(keras.Model):
             stage = []
             for i in range(depth):
                 block = L.ConvBlock(width, strides=2 if i == 0 else 1, name=next(letters))
+                block.conv.strided_gradients_by_phases = compile_lib.strided_gradients_by_phases(self.compile_mode)
                 setattr(self, f"conv_{block.name}", block)
                 stage.append(block)
             self.encoder_stages.append(stage)
@@ -100,8 +101,8 @@ class FastFlow3D(keras.Model):
         for (d, db), n in zip(self.decoder_dims, "STU"):
             setattr(self, f"upsample_{n}", L.UpsampleSkip(d, db, name=n))
             self.upsample_skips.append(getattr(self, f"upsample_{n}"))
-        self.conv_v = keras.layers.Conv2D(self.decoder_dims[-1][0], 3, padding="same", use_bias=False,
-                                          kernel_initializer="glorot_uniform", name="V")
+        self.conv_v = L.Conv2D(self.decoder_dims[-1][0], 3, padding="same", use_bias=False,
+                               kernel_initializer="glorot_uniform", name="V")
         if self.head == "paper":
             self.head_y = L.UngridHead(self.head_hidden_dim, name="Y", dtype="float32")
             self.head_z = keras.layers.Dense(3, kernel_initializer="zeros" if self.zero_init_output else
@@ -155,12 +156,12 @@ class FastFlow3D(keras.Model):
         if self.compile_mode == "xla":
             return compile_lib.xla_function(lambda x: self._forward(x, training))(inputs)
         encoded = compile_lib.hybrid_encode(self.encode_points, inputs, training)
-        grid_flow_embedding = self.dense_stages(encoded["bev_features"], training)
-        return compile_lib.xla_function(self.decode_points)(grid_flow_embedding, encoded)
+        grid = self.grid_stages(encoded["bev_features"], training)
+        return compile_lib.xla_function(self.decode_points)(grid, encoded)
 
     def _forward(self, inputs, training):
         encoded = self.encode_points(inputs, training)
-        return self.decode_points(self.dense_stages(encoded["bev_features"], training), encoded)
+        return self.decode_points(self.grid_stages(encoded["bev_features"], training), encoded)
 
     def encode_points(self, inputs, training=False, stage=None):
         """Rows A and B on both clouds (shared weights, one set of BN statistics over both), and the part of the head
@@ -198,7 +199,35 @@ class FastFlow3D(keras.Model):
 
     def dense_stages(self, bev_features, training=False):
         """Rows C-V: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> grid flow
-        embedding [B,H,W,C_V] in `conv_dtype`."""
+        embedding [B,H,W,C_V] in `conv_dtype`. (The forward runs `grid_stages`.)"""
+        return self.conv_v(self.unet(bev_features, training))
+
+    def grid_stages(self, bev_features, training=False):
+        """What the forward computes on the grid from bev_features [2B,H,W,C]: with the GRU head, rows C-V
+        (`dense_stages`); with the paper head, the head's grid part on each cell, cell_flow [B,H,W,3] float32 (m/s;
+        without the points' own share and the bias, `decode_points`).
+
+        Row V (a 3x3 convolution) and the head's grid part (`UngridHead.composed_with`: a linear map of V's 64
+        channels to 3 for every cell) are both linear with nothing between them, so they are one 3x3 convolution to 3
+        channels whose kernel is V's composed with the head's: row V's arithmetic for 3 output channels instead of 64,
+        forward and backward (the gradients of both kernels follow from the composed one's), the same values up to
+        float rounding. The composed convolution runs in float32 under every precision, as the head always has. (With
+        `compile.convolution_forms` "plain", row V and then the head's grid part.)"""
+        if self.head == "gru":
+            return self.dense_stages(bev_features, training)
+        k_grid = self.head_y.composed_with(self.head_z)[0]
+        if not compile_lib.fast_convolutions():
+            return ops.dense_last_axis(tf.cast(self.dense_stages(bev_features, training), tf.float32), k_grid)
+        x = self.unet(bev_features, training)
+        with tf.name_scope(self.conv_v.name):
+            kernel_v = tf.cast(self.conv_v.kernel, tf.float32)  # [3, 3, C_U, C_V]
+            kernel = tf.matmul(tf.reshape(kernel_v, [-1, kernel_v.shape[-1]]), tf.cast(k_grid, tf.float32))
+            kernel = tf.reshape(kernel, kernel_v.shape[:-1] + [kernel.shape[-1]])  # [3, 3, C_U, 3]
+            return tf.nn.conv2d(tf.cast(x, tf.float32), kernel, 1, "SAME")
+
+    def unet(self, bev_features, training=False):
+        """Rows C-U: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> row U's
+        output [B,H,W,C_U] in `conv_dtype`."""
         x = tf.cast(bev_features, self.conv_dtype)
         skips = [x]
         for stage in self.encoder_stages:
@@ -215,29 +244,27 @@ class FastFlow3D(keras.Model):
         # skips: B, F, L, R (paper rows); decoder S(R*, L*), T(S, F*), U(T, B*), V(U).
         x = self.upsample_skips[0]([both(skips[3]), both(skips[2])])
         x = self.upsample_skips[1]([x, both(skips[1])])
-        x = self.upsample_skips[2]([x, both(skips[0])])
-        return self.conv_v(x)
+        return self.upsample_skips[2]([x, both(skips[0])])
 
-    def decode_points(self, grid_flow_embedding, encoded):
-        """Rows W-Z: flow of the t0 points. `encoded` is `encode_points`'s dict; returns flow_mps [B,N0,3] (0 where
-        invalid) and point_valid [B,N0]. The head's grid part is applied on the grid (3 values per cell); each point
-        takes its cell's (row W) and adds its own part (`point_flow_t0`) and the bias.
+    def decode_points(self, grid, encoded):
+        """Rows W-Z: flow of the t0 points. `grid` is `grid_stages`' output and `encoded` `encode_points`' dict;
+        returns flow_mps [B,N0,3] (0 where invalid) and point_valid [B,N0]. With the paper head, `grid` is the head's
+        grid part applied on the grid (3 values per cell); each point takes its cell's (row W) and adds its own part
+        (`point_flow_t0`) and the bias.
 
         With the GRU head: each point's hidden state starts at its pillar's cells of the two clouds' pillar embeddings
-        (`bev_features`, before the U-Net) and of `grid_flow_embedding`, concatenated; its input is its offset from
+        (`bev_features`, before the U-Net) and of `grid` (rows C-V), concatenated; its input is its offset from
         the pillar centre (channels 3-5 of `Pillarize.encode`, computed chunk by chunk from `point_rows_t0`). The
         grids enter in their own dtype (bfloat16 under mixed precision), one chunk of points at a time cast to the
         head's float32."""
         valid = encoded["point_valid_t0"]
         if self.head == "gru":
             bev_t0, bev_tm1 = tf.split(encoded["bev_features"], 2, axis=0)
-            flow = self.head_gru.decode([bev_t0, bev_tm1, grid_flow_embedding], encoded["point_rows_t0"],
+            flow = self.head_gru.decode([bev_t0, bev_tm1, grid], encoded["point_rows_t0"],
                                         encoded["pillar_ids_t0"], valid, encode=self._point_offsets)
             return {"flow_mps": flow, "point_valid": valid}
-        k_grid, _, _, bias = self.head_y.composed_with(self.head_z)
-        # The head in float32 also after bfloat16 convolutions (the cast fuses into the projection under XLA).
-        cell_flow = ops.dense_last_axis(tf.cast(grid_flow_embedding, tf.float32), k_grid)
-        flow = self.head_y.ungrid(cell_flow, encoded["pillar_ids_t0"]) + encoded["point_flow_t0"] + bias
+        bias = self.head_y.composed_with(self.head_z)[3]
+        flow = self.head_y.ungrid(grid, encoded["pillar_ids_t0"]) + encoded["point_flow_t0"] + bias
         flow = tf.where(valid[..., None], flow, tf.zeros_like(flow))
         return {"flow_mps": flow, "point_valid": valid}
 

@@ -10,6 +10,7 @@ import keras
 import tensorflow as tf
 
 from ff3d_tf import internals
+from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.model import ops
 
 _PKG = "ff3d_tf"
@@ -258,6 +259,34 @@ class PointEncoder(keras.layers.Layer):
 
 
 @keras.saving.register_keras_serializable(package=_PKG)
+class Conv2D(keras.layers.Conv2D):
+    """Keras's Conv2D (the same weights, names and config) with two ways of computing it that XLA's CPU backend runs
+    faster, each equal to the plain convolution up to float rounding:
+
+      - a 1x1 kernel with stride 1 is a matrix product over the last axis (`ops.dense_last_axis`), which XLA's CPU
+        backend computes faster than the same product written as a convolution (rows U1, U3);
+      - with `strided_gradients_by_phases` (set by `FastFlow3D` per compile mode and device,
+        `compile.strided_gradients_by_phases`), a 3x3 stride-2 kernel computes its gradients as stride-1
+        convolutions (`ops.conv2d_stride2`; rows C, G, M).
+
+    Both are left out while `compile.convolution_forms` is "plain".
+    """
+
+    strided_gradients_by_phases = False
+
+    def convolution_op(self, inputs, kernel):
+        if not compile_lib.fast_convolutions():
+            return super().convolution_op(inputs, kernel)
+        one = (1, 1)
+        if tuple(kernel.shape[:2]) == one and tuple(self.strides) == one and tuple(self.dilation_rate) == one:
+            return ops.dense_last_axis(inputs, kernel[0, 0])
+        if self.strided_gradients_by_phases and ops.stride2_by_phases_applies(inputs.shape, kernel.shape,
+                                                                               self.strides, self.padding):
+            return ops.conv2d_stride2(inputs, kernel)
+        return super().convolution_op(inputs, kernel)
+
+
+@keras.saving.register_keras_serializable(package=_PKG)
 class ConvBlock(keras.layers.Layer):
     """Table rows C-R: 3x3 convolution (no bias), BatchNorm, ReLU.
 
@@ -275,8 +304,8 @@ class ConvBlock(keras.layers.Layer):
         self.filters, self.strides = int(filters), int(strides)
         # Inference only: the BatchNorm folded into the convolution (`fold_batch_norm`); set by exports that ask for it.
         self.fold_batch_norm = False
-        self.conv = keras.layers.Conv2D(self.filters, 3, strides=self.strides, padding="same", use_bias=False,
-                                        kernel_initializer="glorot_uniform", name="conv")
+        self.conv = Conv2D(self.filters, 3, strides=self.strides, padding="same", use_bias=False,
+                           kernel_initializer="glorot_uniform", name="conv")
         self.bn = keras.layers.BatchNormalization(name="bn")
 
     def build(self, input_shape):
@@ -369,11 +398,11 @@ class UpsampleSkip(keras.layers.Layer):
         super().__init__(**kwargs)
         self.depth, self.bottleneck_depth = int(depth), int(bottleneck_depth)
         conv = dict(use_bias=False, padding="same", kernel_initializer="glorot_uniform")
-        self.u1 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U1", **conv)
+        self.u1 = Conv2D(self.bottleneck_depth, 1, name="U1", **conv)
         self.u2 = BilinearUpsample2x(name="U2", dtype="float32")  # float32 also under mixed precision
-        self.u3 = keras.layers.Conv2D(self.bottleneck_depth, 1, name="U3", **conv)
-        self.u5 = keras.layers.Conv2D(self.depth, 3, name="U5", **conv)
-        self.u6 = keras.layers.Conv2D(self.depth, 3, name="U6", **conv)
+        self.u3 = Conv2D(self.bottleneck_depth, 1, name="U3", **conv)
+        self.u5 = Conv2D(self.depth, 3, name="U5", **conv)
+        self.u6 = Conv2D(self.depth, 3, name="U6", **conv)
 
     def build(self, input_shape):
         alpha_shape, beta_shape = input_shape

@@ -1,6 +1,7 @@
 """The model's operations that are not layers: the point encoder's chunk loop (`chunked_segment_sum`, `POINT_CHUNK`
 points at a time by default, or the whole cloud at once with `ONE_CHUNK`), two matrix products shaped for XLA
-(`dense_last_axis`, `narrow_matmul`) and the grid's bilinear x2 upsampling (`bilinear_upsample_2x`).
+(`dense_last_axis`, `narrow_matmul`), the grid's bilinear x2 upsampling (`bilinear_upsample_2x`) and a strided
+convolution whose gradients XLA's CPU backend computes as stride-1 convolutions (`conv2d_stride2`).
 
 Notation as in `ff3d_tf.model.layers`: P points (flattened over the batch), C channels.
 """
@@ -36,6 +37,61 @@ def narrow_matmul(x, kernel):
         return tf.matmul(dy, kernel, transpose_b=True), tf.matmul(x, dy, transpose_a=True)
 
     return y, grad
+
+
+def stride2_by_phases_applies(input_shape, kernel_shape, strides, padding) -> bool:
+    """Whether `conv2d_stride2` computes this convolution: a 3x3 kernel, stride 2, SAME padding and an even static
+    height and width of the input [B,H,W,C]."""
+    h, w = input_shape[1], input_shape[2]
+    return (tuple(kernel_shape[:2]) == (3, 3) and tuple(strides) == (2, 2) and str(padding).upper() == "SAME" and
+            h is not None and w is not None and h % 2 == 0 and w % 2 == 0)
+
+
+def conv2d_stride2(x, kernel):
+    """`tf.nn.conv2d(x, kernel, 2, "SAME")` for x [B,H,W,Ci] with an even static H and W and a 3x3 kernel
+    [3,3,Ci,Co] (`stride2_by_phases_applies`), whose gradients are computed phase by phase (`_stride2_gradients`):
+    XLA's CPU backend computes a strided convolution's input gradient as a convolution of the output gradient
+    dilated with zeros, several times slower than a stride-1 convolution of the same arithmetic; split into phases,
+    every gradient is a stride-1 convolution. The values are those of the plain op's gradients up to float rounding."""
+    return _conv2d_stride2(tf.convert_to_tensor(x), tf.convert_to_tensor(kernel))  # values, not variables
+
+
+@tf.custom_gradient
+def _conv2d_stride2(x, kernel):
+    def grad(dy):
+        return _stride2_gradients(x, kernel, dy)
+
+    return tf.nn.conv2d(x, kernel, 2, "SAME"), grad
+
+
+def _stride2_gradients(x, kernel, dy):
+    """(dx, dkernel) of `conv2d_stride2`. SAME padding of an even size with stride 2 pads one zero row (column) at the
+    end, and output cell (i, j) reads x_pad[2i + kh, 2j + kw]. Phase (a, c) of x_pad, x_pad[2i + a, 2j + c], meets
+    only the taps kh = a + 2m, kw = c + 2l (m, l in {0, 1}, kh, kw < 3): the output is the sum over the four phases of
+    stride-1 VALID convolutions with those 2x2, 2x1, 1x2 and 1x1 sub-kernels, and each phase's gradients are those of
+    its stride-1 convolution."""
+    h, w, channels = x.shape[1], x.shape[2], x.shape[3]
+    h2, w2 = h // 2, w // 2
+    # Two zero rows and columns keep the padded size even; the second is never read.
+    x_phases = tf.reshape(tf.pad(x, [[0, 0], [0, 2], [0, 2], [0, 0]]), [-1, h2 + 1, 2, w2 + 1, 2, channels])
+    one = [1, 1, 1, 1]
+    dx_rows, dkernel_parts = [], {}
+    for a in (0, 1):
+        dx_row = []
+        for c in (0, 1):
+            sub_kernel = kernel[a::2, c::2]  # [2 - a, 2 - c, Ci, Co]: the taps (a + 2m, c + 2l)
+            rows, cols = h2 + 1 - a, w2 + 1 - c  # the phase's cells that some output cell reads
+            phase = x_phases[:, :rows, a, :cols, c, :]
+            d_phase = tf.raw_ops.Conv2DBackpropInput(input_sizes=tf.shape(phase), filter=sub_kernel,
+                                                     out_backprop=dy, strides=one, padding="VALID")
+            dkernel_parts[a, c] = tf.raw_ops.Conv2DBackpropFilter(input=phase, filter_sizes=tf.shape(sub_kernel),
+                                                                  out_backprop=dy, strides=one, padding="VALID")
+            dx_row.append(tf.pad(d_phase, [[0, 0], [0, a], [0, c], [0, 0]]))  # [B, h2 + 1, w2 + 1, Ci]
+        dx_rows.append(tf.stack(dx_row, 3))  # [B, h2 + 1, w2 + 1, 2, Ci]: column phases interleaved
+    dx_pad = tf.reshape(tf.stack(dx_rows, 2), [-1, h + 2, w + 2, channels])
+    dkernel = tf.stack([tf.stack([dkernel_parts[kh % 2, kw % 2][kh // 2, kw // 2] for kw in range(3)])
+                        for kh in range(3)])
+    return dx_pad[:, :h, :w], dkernel
 
 
 def _chunking(total, static_total, chunk_size):

@@ -5,14 +5,16 @@ Every reading comes from a fresh child process (`ff3d_tf.children.run_child`, pi
 
   settings  "before": the process as TensorFlow starts it by itself on the emulated CPU (`ff3d_tf.cpu.EMULATIONS`
             [cap]: on an AVX2-only CPU, oneDNN off), the point encoding of compile mode hybrid in one XLA program
-            (`compile_lib.hybrid_point_programs = "one"`), `model.compile=auto` by the rule of before the per-job choice
-            (hybrid on every CPU);
+            (`compile_lib.hybrid_point_programs = "one"`), the convolutions as Keras has them and row V apart from the
+            head (`compile_lib.convolution_forms = "plain"`), `model.compile=auto` by the rule of before the per-job
+            choice (hybrid on every CPU);
             "after": the start-up environment the tools choose for the job (`ff3d_tf.cpu.startup_environment`, under
-            the same ISA caps), the clouds' point programs apart ("per_cloud"), `auto` by
-            `compile_lib.resolve_compile_mode` for the job;
+            the same ISA caps), the clouds' point programs apart ("per_cloud"), the model's own convolution forms
+            ("fast"), `auto` by `compile_lib.resolve_compile_mode` for the job;
             "after_onednn" (on request): "after" with TensorFlow's oneDNN operations on;
             "after_remat" (on request): "after" with the encoder's activations recomputed in the backward
-            (`model.remat_encoder=true`).
+            (`model.remat_encoder=true`);
+            "after_plain_convolutions" (on request): "after" with the convolutions of "before" (what the forms save).
   job       "train" (the Trainer's own step: forward, loss, backward, Adam; batch 1, the process's peak resident
             memory) or "forward" (the compiled forward at each point count, in one process, round robin).
   mode      `model.compile`: auto, hybrid, xla, none.
@@ -41,7 +43,9 @@ SETTINGS = ("before", "after")
 # "after_remat": "after" with `model.remat_encoder=true` (REMAT_OVERRIDE), the training memory it saves and its time.
 # "after_default_arenas": "after" with glibc's own number of malloc arenas (MALLOC_ARENA_MAX left out), what the
 # start-up's limit saves.
-ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat", "after_default_arenas")
+# "after_plain_convolutions": "after" with `compile_lib.convolution_forms = "plain"`, what the model's convolution forms
+# save.
+ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat", "after_default_arenas", "after_plain_convolutions")
 REMAT_OVERRIDE = "model.remat_encoder=true"
 JOBS = ("train", "forward")
 MODES = ("auto", "hybrid", "xla", "none")
@@ -100,10 +104,11 @@ def resolved_mode(setting: str, mode: str, job: str, environment: Mapping) -> st
 
 
 # -- in the child ------------------------------------------------------------------------------------------------------
-def _setup(config: str, overrides: Sequence[str], point_programs: str):
+def _setup(config: str, overrides: Sequence[str], point_programs: str, convolution_forms: str):
     from ff3d_tf.config import load_config
     from ff3d_tf.model import compile as compile_lib
     compile_lib.hybrid_point_programs = point_programs
+    compile_lib.convolution_forms = convolution_forms
     return load_config(config or None, list(overrides))
 
 
@@ -114,7 +119,8 @@ def _header(mode: str) -> dict:
 
 
 def train_child(config: str, overrides: list, mode: str, points: int, steps: int, warmup: int,
-                point_programs: str, stages: bool, stage_runs: int, malloc_arena_max: str | None = None) -> dict:
+                point_programs: str, stages: bool, stage_runs: int, malloc_arena_max: str | None = None,
+                convolution_forms: str = "fast") -> dict:
     """(In a child.) The Trainer's step in compile `mode` (resolved) on one labelled benchmark example: "step_ms" and
     "step_cpu_ms" of each of `steps` steps after `warmup`, "peak_rss_gb" (the process's peak resident memory from its
     start to the last step: libraries, compilation, every step), and with `stages` the step's parts (`stage_times`).
@@ -122,11 +128,12 @@ def train_child(config: str, overrides: list, mode: str, points: int, steps: int
     arenas = cpu.limit_malloc_arenas({"MALLOC_ARENA_MAX": malloc_arena_max or ""})
     import numpy as np
     from ff3d_tf.training import bench_steps
-    cfg = _setup(config, overrides, point_programs)
+    cfg = _setup(config, overrides, point_programs, convolution_forms)
     labelled, padded = bench_steps.example(cfg, np.random.default_rng(0), points, labels=True)
     step = bench.fetched(bench_steps.train_steps(cfg, {mode: mode}, labelled)[mode])
     readings = bench.measure(step, steps, warmup, reading=bench.timed_with_usage)
     out = {**_header(mode), "points": points, "padded_points": padded, "point_programs": point_programs,
+           "convolution_forms": convolution_forms,
            "malloc_arena_max": arenas, "step_ms": [r["ms"] for r in readings],
            "step_cpu_ms": [r["cpu_ms"] for r in readings],
            "peak_rss_gb": bench.proc_status("VmHWM"), "rss_after_gb": bench.proc_status("VmRSS")}
@@ -141,7 +148,7 @@ def train_child(config: str, overrides: list, mode: str, points: int, steps: int
 
 
 def forward_child(config: str, overrides: list, mode: str, points: list, runs: int, warmup: int,
-                  point_programs: str, malloc_arena_max: str | None = None) -> dict:
+                  point_programs: str, malloc_arena_max: str | None = None, convolution_forms: str = "fast") -> dict:
     """(In a child.) The compiled forward (`compiled_forward`, batch 1) in compile `mode` at each of `points`, round
     robin: {"forward_ms": {points: each call's ms}, "median_ms": {points: median}, "peak_rss_gb"}."""
     cpu.limit_malloc_arenas({"MALLOC_ARENA_MAX": malloc_arena_max or ""})
@@ -150,14 +157,14 @@ def forward_child(config: str, overrides: list, mode: str, points: list, runs: i
     from ff3d_tf.model import build_model
     from ff3d_tf.model.forward import compiled_forward
     from ff3d_tf.training import bench_steps
-    cfg = _setup(config, overrides, point_programs)
+    cfg = _setup(config, overrides, point_programs, convolution_forms)
     model = build_model(replace_config(cfg, {"train.global_batch_size": 1}), mode)
     forward = compiled_forward(model, mode == "xla")
     rng = np.random.default_rng(0)
     inputs = {n: bench_steps.example(cfg, rng, n)[0] for n in points}
     calls = {str(n): bench.fetched(lambda x=x: forward(x)) for n, x in inputs.items()}
     readings = bench.round_robin(calls, runs, warmup, reading=bench.timed_with_usage)
-    out = {**_header(mode), "point_programs": point_programs,
+    out = {**_header(mode), "point_programs": point_programs, "convolution_forms": convolution_forms,
            "forward_ms": {n: [r["ms"] for r in rs] for n, rs in readings.items()},
            "forward_cpu_ms": {n: [r["cpu_ms"] for r in rs] for n, rs in readings.items()}}
     out["median_ms"] = {n: bench.middle(v) for n, v in out["forward_ms"].items()}
@@ -216,7 +223,8 @@ def step_parts(cfg, mode: str, labelled: dict) -> dict:
 
       point_forward          rows A-B (pillars, point encoder, scatter; BN statistics of training) and W-Z (head)
       point_forward_backward the same and their gradients (upstream: ones)
-      conv_forward           rows C-V with training=True (BatchNorm on batch statistics)
+      conv_forward           rows C-V (with the paper head, and the head's grid part: `FastFlow3D.grid_stages`)
+                             with training=True (BatchNorm on batch statistics)
       conv_forward_backward  the same and their gradients
       optimizer              the step's update: global norm, clipping, Adam (`step.adam_update`) on the model's weights
       loss                   the loss and its gradient with respect to the flow
@@ -245,7 +253,7 @@ def step_parts(cfg, mode: str, labelled: dict) -> dict:
         return model.decode_points(grid, encoded)
 
     encoded0 = tf.function(encode, jit_compile=xla)(inputs)
-    grid0 = tf.function(lambda b: model.dense_stages(b, True), jit_compile=xla)(encoded0["bev_features"])
+    grid0 = tf.function(lambda b: model.grid_stages(b, True), jit_compile=xla)(encoded0["bev_features"])
     dense_vars, point_vars = _dense_and_point_variables(model)
 
     def point_fb(x, grid):
@@ -259,7 +267,7 @@ def step_parts(cfg, mode: str, labelled: dict) -> dict:
     def conv_fb(bev):
         with tf.GradientTape() as tape:
             tape.watch(bev)
-            total = tf.reduce_sum(tf.cast(model.dense_stages(bev, True), tf.float32))
+            total = tf.reduce_sum(tf.cast(model.grid_stages(bev, True), tf.float32))
         return tape.gradient(total, dense_vars + [bev])
 
     flow0 = decode(grid0, encoded0)
@@ -273,7 +281,7 @@ def step_parts(cfg, mode: str, labelled: dict) -> dict:
 
     return {"point_forward": (tf.function(lambda x, g: decode(g, encode(x)), jit_compile=xla), (inputs, grid0)),
             "point_forward_backward": (tf.function(point_fb, jit_compile=xla), (inputs, grid0)),
-            "conv_forward": (tf.function(lambda b: model.dense_stages(b, True), jit_compile=xla),
+            "conv_forward": (tf.function(lambda b: model.grid_stages(b, True), jit_compile=xla),
                              (encoded0["bev_features"],)),
             "conv_forward_backward": (tf.function(conv_fb, jit_compile=xla), (encoded0["bev_features"],)),
             "optimizer": _optimizer_part(cfg1, model),
@@ -345,7 +353,7 @@ def projection(summary: Mapping, figures: Mapping | None = None) -> dict:
     step, fwd = summary.get("train/auto"), summary.get("forward/auto")
     if both(step):
         out.update(_train_projection(step["before"], step["after"], before, peer))
-        for setting in ("after_remat", "after_default_arenas"):
+        for setting in ("after_remat", "after_default_arenas", "after_plain_convolutions"):
             if setting in step and "error" not in step[setting]:
                 out[setting] = _train_projection(step["before"], step[setting], before, peer)
     if both(fwd):
@@ -405,7 +413,8 @@ def study(config: str, overrides: Sequence[str], train_points: int, forward_poin
         point_programs = "one" if setting == "before" else "per_cloud"
         kwargs = {"config": config, "mode": resolved, "warmup": warmup,
                   "overrides": list(overrides) + ([REMAT_OVERRIDE] if setting == "after_remat" else []),
-                  "point_programs": point_programs}
+                  "point_programs": point_programs,
+                  "convolution_forms": "plain" if setting in ("before", "after_plain_convolutions") else "fast"}
         if job == "train":
             fn = f"{MODULE}:train_child"
             kwargs.update(points=train_points, steps=steps, stages=stages, stage_runs=stage_runs)

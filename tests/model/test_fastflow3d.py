@@ -162,7 +162,7 @@ def test_point_stages_hold_no_per_point_feature_array(tiny_config):
     inputs = _inputs(np.random.default_rng(9), 1, n, n)
     encode = tf.function(lambda x: model.encode_points(x), jit_compile=True)
     encoded = encode(inputs)
-    grid = model.dense_stages(encoded["bev_features"])
+    grid = model.grid_stages(encoded["bev_features"])
     decode = tf.function(lambda g, e: model.decode_points(g, e), jit_compile=True)
     hlo = (encode.experimental_get_compiler_ir(inputs)(stage="optimized_hlo") +
            decode.experimental_get_compiler_ir(grid, encoded)(stage="optimized_hlo"))

@@ -1,6 +1,7 @@
 """Precision (`model.mixed_precision` = false | true | auto): the CPU flag detection, its resolution and log line, and
 what a bfloat16 model computes in which dtype (convolutions bfloat16; variables, coordinates, pillar indices, pillar
 sums and the head float32), against a float32 model with the same weights."""
+import collections
 import logging
 
 import keras
@@ -174,27 +175,33 @@ def _ops_by_type(graph_def, op_type):
 
 
 def test_bfloat16_convolutions_float32_points_in_the_graph(models):
-    """The traced hybrid forward: every convolution (and its fused BatchNorm) is a bfloat16 graph kernel outside XLA;
-    every segment sum (pillar sums), floor (pillar indices) and gather (ungrid) is float32, inside the point stages'
-    XLA functions; every variable is float32."""
+    """The traced hybrid forward: every convolution of rows C-U (and its fused BatchNorm) is a bfloat16 graph kernel
+    outside XLA, and row V composed with the head's grid part a float32 one; every segment sum (pillar sums), floor
+    (pillar indices) and gather (ungrid) is float32, inside the point stages' XLA functions; every variable is
+    float32."""
     _, m16 = models
     graph_def = tf.function(lambda x: m16(x)).get_concrete_function(_inputs()).graph.as_graph_def()
     convs = _ops_by_type(graph_def, "Conv2D")
-    assert len(convs) == sum(len(s) for s in m16.encoder_stages) + 4 * 3 + 1  # C-R, 4 per Upsample-Skip, V
-    assert all(fn == "" and node.attr["T"].type == tf.bfloat16.as_datatype_enum for fn, node in convs)
+    assert all(fn == "" for fn, _ in convs)
+    dtypes = collections.Counter(tf.as_dtype(node.attr["T"].type).name for _, node in convs)
+    # C-R and the two 3x3 convolutions of each Upsample-Skip in bfloat16 (its 1x1 ones are matrix products,
+    # `layers.Conv2D`); V with the head's grid part in float32 (`FastFlow3D.grid_stages`).
+    assert dtypes == {"bfloat16": sum(len(s) for s in m16.encoder_stages) + 2 * 3, "float32": 1}, dtypes
+    one_by_one = [n for fn, n in _ops_by_type(graph_def, "MatMul") if fn == "" and ("/U1" in n.name or "/U3" in n.name)]
+    assert len(one_by_one) == 2 * 3 and all(n.attr["T"].type == tf.bfloat16.as_datatype_enum for n in one_by_one)
     norms = _ops_by_type(graph_def, "FusedBatchNormV3")
     assert norms and all(n.attr["T"].type == tf.bfloat16.as_datatype_enum and
                          n.attr["U"].type == tf.float32.as_datatype_enum for _, n in norms)
     for op_type in ("UnsortedSegmentSum", "Floor"):  # pillar sums, pillar indices: in the point stages, float32
         nodes = _ops_by_type(graph_def, op_type)
         assert nodes and all(fn and n.attr["T"].type == tf.float32.as_datatype_enum for fn, n in nodes), op_type
-    # The point stages' functions (their XLA programs, loops and gradients) hold bfloat16 only in the casts at their
-    # boundary with the convolutions (the grid handed to them, their output taken back) and in the identities that
-    # return them: no bfloat16 arithmetic.
+    # The point stages' functions (their XLA programs, loops and gradients) hold no bfloat16 arithmetic: at most the
+    # casts at their boundary with the convolutions and the identities that return them (the grid handed to the
+    # head is the float32 output of V composed with the head's grid part).
     bf16 = tf.bfloat16.as_datatype_enum
     in_functions = {n.op for f in graph_def.library.function for n in f.node_def
                     if any(v.type == bf16 or bf16 in v.list.type for v in n.attr.values())}
-    assert in_functions <= {"Cast", "Identity"} and "Cast" in in_functions, in_functions
+    assert in_functions <= {"Cast", "Identity"}, in_functions
     assert all(v.dtype == "float32" for v in m16.variables)
     assert m16.conv_C.conv.compute_dtype == "bfloat16" and m16.upsample_S.u5.compute_dtype == "bfloat16"
     assert m16.point_encoder.compute_dtype == "float32" and m16.head_y.compute_dtype == "float32"

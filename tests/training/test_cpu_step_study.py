@@ -31,6 +31,19 @@ def test_after_remat_is_after_with_the_encoder_recomputed(monkeypatch):
     assert [c["overrides"] for c in calls] == [["train.seed=1"], ["train.seed=1", study.REMAT_OVERRIDE]]
 
 
+def test_before_and_after_plain_convolutions_run_the_plain_forms(monkeypatch):
+    """"before" is the model as the issue measured it: its convolutions in their plain forms, as in the setting that
+    isolates them ("after_plain_convolutions", otherwise "after"); "after" runs the model's own forms."""
+    assert study.variant_environment("after_plain_convolutions", "train", "zen3", {}) == \
+        study.variant_environment("after", "train", "zen3", {})
+    calls = []
+    monkeypatch.setattr(study.children, "run_child", lambda fn, kwargs, **kw: calls.append(kwargs) or {
+        "mode": kwargs["mode"], "onednn_enabled": False, "step_median_ms": 1.0, "peak_rss_gb": 1.0})
+    study.study("", [], 100, [100], ["xla"], ["train", "forward"], ["before", "after", "after_plain_convolutions"],
+                "zen3", 1, 0, 1, False, 1, 1, log_fn=lambda line: None)
+    assert [c["convolution_forms"] for c in calls] == ["plain", "fast", "plain"] * 2
+
+
 def test_the_child_limits_malloc_arenas_as_a_tool_does(monkeypatch):
     """MALLOC_ARENA_MAX of the start-up reaches a child as an argument that it applies after its start (as
     tools/_common.py), not in the environment glibc reads at exec; "after_default_arenas" leaves it out."""
@@ -109,12 +122,12 @@ def test_study_checks_its_words():
 @pytest.mark.parametrize("mode", ["none", pytest.param("hybrid", marks=pytest.mark.slow)])
 def test_train_child_in_this_process(mode):
     from ff3d_tf.config import TINY_OVERRIDES
-    saved = compile_lib.hybrid_point_programs
+    saved = compile_lib.hybrid_point_programs, compile_lib.convolution_forms
     try:
         out = study.train_child("", list(TINY_OVERRIDES), mode, points=300, steps=1, warmup=0,
                                 point_programs="per_cloud", stages=True, stage_runs=1)
     finally:
-        compile_lib.hybrid_point_programs = saved
+        compile_lib.hybrid_point_programs, compile_lib.convolution_forms = saved
     assert out["mode"] == mode and len(out["step_ms"]) == 1 and out["peak_rss_gb"] > 0
     assert set(out["stages"]) == {"point_forward", "point_forward_backward", "conv_forward",
                                   "conv_forward_backward", "optimizer", "loss", "batchnorm_ms"}

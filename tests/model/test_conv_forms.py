@@ -1,0 +1,172 @@
+"""The model's convolution forms (`compile.convolution_forms`): the stride-2 convolution whose gradients are computed
+phase by phase (`ops.conv2d_stride2`), the 1x1 convolution as a matrix product and the choice between them
+(`layers.Conv2D`), and row V composed with the head's grid part (`FastFlow3D.grid_stages`). Each against TensorFlow's
+own convolution and its gradients, or against the model's plain forms."""
+import contextlib
+
+import keras
+import numpy as np
+import pytest
+import tensorflow as tf
+
+from ff3d_tf.model import build_model
+from ff3d_tf.model import compile as compile_lib
+from ff3d_tf.model import layers as L
+from ff3d_tf.model import ops
+
+
+@contextlib.contextmanager
+def _forms(value):
+    previous, compile_lib.convolution_forms = compile_lib.convolution_forms, value
+    try:
+        yield
+    finally:
+        compile_lib.convolution_forms = previous
+
+
+def _value_and_gradients(conv, x, kernel, dy, jit_compile):
+    def run(x, kernel):
+        with tf.GradientTape() as tape:
+            tape.watch([x, kernel])
+            y = conv(x, kernel)
+        return [y] + tape.gradient(y, [x, kernel], output_gradients=dy)
+    return [t.numpy() for t in tf.function(run, jit_compile=jit_compile)(x, kernel)]
+
+
+@pytest.mark.parametrize("jit_compile", [False, True])
+@pytest.mark.parametrize("shape", [(2, 8, 6, 3), (1, 4, 10, 5)])
+def test_conv2d_stride2_values_and_gradients_are_tensorflows(shape, jit_compile):
+    """The convolution, its input gradient and its kernel gradient equal TensorFlow's stride-2 SAME convolution's (its
+    Conv2D and the gradients TensorFlow registers for it), eagerly and under XLA, on grids that are not square."""
+    rng = np.random.default_rng(0)
+    b, h, w, c = shape
+    x = tf.constant(rng.normal(size=shape).astype(np.float32))
+    kernel = tf.constant(rng.normal(size=(3, 3, c, 4)).astype(np.float32))
+    dy = tf.constant(rng.normal(size=(b, h // 2, w // 2, 4)).astype(np.float32))
+    want = _value_and_gradients(lambda x, k: tf.nn.conv2d(x, k, 2, "SAME"), x, kernel, dy, jit_compile)
+    got = _value_and_gradients(ops.conv2d_stride2, x, kernel, dy, jit_compile)
+    for name, g, v in zip(("output", "input gradient", "kernel gradient"), got, want):
+        assert g.shape == v.shape, name
+        np.testing.assert_allclose(g, v, rtol=1e-5, atol=1e-5 * np.abs(v).max(), err_msg=name)
+
+
+def test_stride2_by_phases_applies_only_where_it_computes_the_same():
+    assert ops.stride2_by_phases_applies((2, 8, 6, 3), (3, 3, 3, 4), (2, 2), "same")
+    assert not ops.stride2_by_phases_applies((2, 7, 6, 3), (3, 3, 3, 4), (2, 2), "same")  # odd: SAME pads the front
+    assert not ops.stride2_by_phases_applies((2, None, 6, 3), (3, 3, 3, 4), (2, 2), "same")  # size unknown
+    assert not ops.stride2_by_phases_applies((2, 8, 6, 3), (3, 3, 3, 4), (1, 1), "same")
+    assert not ops.stride2_by_phases_applies((2, 8, 6, 3), (5, 5, 3, 4), (2, 2), "same")
+    assert not ops.stride2_by_phases_applies((2, 8, 6, 3), (3, 3, 3, 4), (2, 2), "valid")
+
+
+def _op_types(layer, x):
+    graph = tf.function(layer).get_concrete_function(x).graph
+    return {op.type for op in graph.get_operations()}
+
+
+@pytest.mark.parametrize("kernel_size,strides,phases", [(1, 1, False), (3, 2, True), (3, 1, False)])
+def test_conv2d_layer_equals_keras_conv2d(kernel_size, strides, phases):
+    """`layers.Conv2D` with the weights of Keras's Conv2D: the same output and gradients in every form, and the op it
+    runs: a matrix product for 1x1, the phase-gradient op where asked for, Keras's convolution under "plain"."""
+    rng = np.random.default_rng(1)
+    x = tf.constant(rng.normal(size=(2, 8, 6, 5)).astype(np.float32))
+    keras_conv = keras.layers.Conv2D(4, kernel_size, strides=strides, padding="same", use_bias=False)
+    ours = L.Conv2D(4, kernel_size, strides=strides, padding="same", use_bias=False)
+    ours.strided_gradients_by_phases = phases
+    keras_conv.build(x.shape)
+    ours.build(x.shape)
+    ours.set_weights(keras_conv.get_weights())
+
+    def outputs_and_gradients(layer):
+        with tf.GradientTape() as tape:
+            tape.watch(x)
+            y = layer(x)
+            loss = tf.reduce_sum(y * y)
+        return [y.numpy()] + [g.numpy() for g in tape.gradient(loss, [x, layer.kernel])]
+
+    want = outputs_and_gradients(keras_conv)
+    for forms in compile_lib.CONVOLUTION_FORMS:
+        with _forms(forms):
+            for g, v in zip(outputs_and_gradients(ours), want):
+                np.testing.assert_allclose(g, v, rtol=1e-5, atol=1e-5 * np.abs(v).max(), err_msg=forms)
+            ops_run = _op_types(ours, x)
+        if forms == "plain" or kernel_size == 3:
+            assert "Conv2D" in ops_run and "MatMul" not in ops_run, forms
+        else:
+            assert "MatMul" in ops_run and "Conv2D" not in ops_run
+        if forms == "fast" and phases:  # the custom gradient's identity op wraps the phase-gradient convolution
+            assert "IdentityN" in ops_run
+        else:
+            assert "IdentityN" not in ops_run
+
+
+def test_strided_gradients_by_phases_where_xla_compiles_on_a_cpu(tiny_config):
+    assert compile_lib.strided_gradients_by_phases("xla", "CPU")
+    assert not compile_lib.strided_gradients_by_phases("xla", "GPU")
+    assert not compile_lib.strided_gradients_by_phases("hybrid", "CPU")
+    assert not compile_lib.strided_gradients_by_phases("none", "CPU")
+    for mode in ("xla", "hybrid"):
+        model = build_model(tiny_config, mode)
+        flags = {block.name: block.conv.strided_gradients_by_phases for stage in model.encoder_stages
+                 for block in stage}
+        assert set(flags.values()) == {mode == "xla"}, (mode, flags)
+    with _forms("neither"), pytest.raises(ValueError, match="fast, plain"):
+        compile_lib.fast_convolutions()
+
+
+def _inputs(seed=3, n0=400, n1=380):
+    rng = np.random.default_rng(seed)
+
+    def cloud(n):
+        xyz = rng.uniform(-38, 38, (1, n, 3)).astype(np.float32)
+        xyz[..., 2] = rng.uniform(-2.5, 2.5, (1, n))
+        return tf.constant(xyz), tf.constant(rng.uniform(0, 1, (1, n, 2)).astype(np.float32))
+    p0, f0 = cloud(n0)
+    p1, f1 = cloud(n1)
+    return {"points_xyz_t0": p0, "point_features_t0": f0, "point_mask_t0": tf.ones([1, n0], tf.bool),
+            "points_xyz_tm1_in_t0": p1, "point_features_tm1": f1, "point_mask_tm1": tf.ones([1, n1], tf.bool)}
+
+
+def test_grid_stages_compose_row_v_with_the_head(tiny_config):
+    """With the paper head, `grid_stages` is row V (`dense_stages`) followed by the head's grid kernel, computed as
+    one convolution: the same cell flow as the two one after the other."""
+    keras.utils.set_random_seed(4)
+    model = build_model(tiny_config, "none")
+    bev = tf.constant(np.random.default_rng(5).normal(size=(
+        2, tiny_config.grid.num_pillars_y, tiny_config.grid.num_pillars_x,
+        tiny_config.model.point_feature_dim)).astype(np.float32))
+    k_grid = model.head_y.composed_with(model.head_z)[0]
+    want = tf.einsum("bhwc,cu->bhwu", model.dense_stages(bev), k_grid).numpy()
+    got = model.grid_stages(bev).numpy()
+    assert got.shape == want.shape and got.shape[-1] == 3 and np.abs(want).max() > 0
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+    with _forms("plain"):
+        np.testing.assert_allclose(model.grid_stages(bev).numpy(), want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+
+
+def test_training_gradients_of_the_fast_forms_equal_the_plain_ones(tiny_config):
+    """The training step's loss gradient in compile mode xla (every form: phases, matrix products, V composed with
+    the head) against the same model's plain forms: every variable's gradient, up to float rounding."""
+    keras.utils.set_random_seed(6)
+    model = build_model(tiny_config, "xla", point_chunk_size=128)
+    model.head_z.kernel.assign(model.head_z.kernel * 0.1)  # flows of a real size (~1 m/s)
+    inputs = _inputs()
+
+    def gradients():
+        def run(x):
+            with tf.GradientTape() as tape:
+                loss = tf.reduce_sum(tf.square(model(x, training=True, inline_stages=True)["flow_mps"]))
+            return [loss] + tape.gradient(loss, model.trainable_variables)
+        weights = model.get_weights()  # training=True moves the BatchNorm statistics: both runs start alike
+        out = [t.numpy() for t in tf.function(run, jit_compile=True)(inputs)]
+        model.set_weights(weights)
+        return out
+
+    fast = gradients()
+    with _forms("plain"):
+        plain = gradients()
+    assert fast[0] > 0
+    np.testing.assert_allclose(fast[0], plain[0], rtol=1e-5)
+    for g, w, v in zip(fast[1:], plain[1:], model.trainable_variables):
+        assert np.abs(w).max() > 0, v.path
+        np.testing.assert_allclose(g, w, atol=1e-4 * np.abs(w).max() + 1e-7, err_msg=v.path)
