@@ -971,7 +971,9 @@ CONV_FORMS_OWN_ISA_TABLE = Table(
            V(_CZ, ("summary", "forward/auto", setting, "median_ms", "1000000"), "{:,.0f} ms"))
           for setting in ("after", "after_plain_convolutions")))
 CPU_TARGETS_TABLE = _targets_table(_CF)
-TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_OWN_ISA_TABLE, CPU_TARGETS_TABLE)
+CONV_FORMS_REMAT_TABLE = _settings_table("cpu_step_avx2_convolutions_remat.json", ("before", "after", "after_remat"))
+TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_OWN_ISA_TABLE, CPU_TARGETS_TABLE,
+           CONV_FORMS_REMAT_TABLE)
 
 # -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
 _HC = "head_cost_cpu.json"
