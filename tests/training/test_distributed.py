@@ -27,7 +27,9 @@ def _two_replicas():
     return tf.distribute.MirroredStrategy(["/cpu:0", "/cpu:1"])
 
 
-@pytest.mark.parametrize("remat", [False, True])
+# Without recomputation in `make test-slow` only: two replicas without it are also checked by the DeltaFlow test below
+# and the GRU head's (tests/training/test_gru_head_training.py).
+@pytest.mark.parametrize("remat", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_two_replicas_equal_the_reference(tiny_segment, tiny_config, tmp_path, remat):
     """Also with the encoder's activations recomputed in the backward (`model.remat_encoder`), against a reference
     that holds them."""
