@@ -947,16 +947,23 @@ def _settings_table(file, settings, jobs="train"):
 MEMORY_TABLE = _settings_table("cpu_step_avx2_memory.json", ("before", "after", "after_default_arenas", "after_remat"))
 _CF = "cpu_step_avx2_convolutions.json"
 CONV_FORMS_TABLE = _settings_table(_CF, ("before", "after", "after_plain_convolutions"), jobs="train,forward")
-CONV_FORMS_FORWARD_TABLE = Table(
-    B, Quote(B, "The forward in the same run (`--jobs forward`, `auto`), the middle over the rounds of the median of "
-                "{} calls after {} warm-up calls, both point counts in one process:",
-             (V(_CF, "runs"), V(_CF, "warmup"))),
-    ("setting", "runs", "32,000 points", "1,000,000 points", "ratio"), "llrrr",
-    tuple((_STEP_SETTINGS[setting], V(_CF, ("summary", "forward/auto", setting, "mode")),
-           V(_CF, ("summary", "forward/auto", setting, "median_ms", "32000"), "{:,.0f} ms"),
-           V(_CF, ("summary", "forward/auto", setting, "median_ms", "1000000"), "{:,.0f} ms"),
-           V(_CF, ("summary", "forward/auto", setting, "t1m_over_t32k"), "{:.2f}"))
-          for setting in ("before", "after", "after_plain_convolutions")))
+
+
+def _forward_table(file, settings):
+    """The forward of each of `settings` in `file` (a study run with `--jobs train,forward`)."""
+    return Table(
+        B, Quote(B, "The forward in the same run (`--jobs forward`, `auto`), the middle over the rounds of the median "
+                    "of {} calls after {} warm-up calls, both point counts in one process:",
+                 (V(file, "runs"), V(file, "warmup"))),
+        ("setting", "runs", "32,000 points", "1,000,000 points", "ratio"), "llrrr",
+        tuple((_STEP_SETTINGS[setting], V(file, ("summary", "forward/auto", setting, "mode")),
+               V(file, ("summary", "forward/auto", setting, "median_ms", "32000"), "{:,.0f} ms"),
+               V(file, ("summary", "forward/auto", setting, "median_ms", "1000000"), "{:,.0f} ms"),
+               V(file, ("summary", "forward/auto", setting, "t1m_over_t32k"), "{:.2f}"))
+              for setting in settings))
+
+
+CONV_FORMS_FORWARD_TABLE = _forward_table(_CF, ("before", "after", "after_plain_convolutions"))
 _CZ = "cpu_step_zen4_convolutions.json"
 CONV_FORMS_OWN_ISA_TABLE = Table(
     B, Quote(B, "`tools/benchmark_cpu_step.py --cap none --jobs train,forward --modes auto --settings "
@@ -970,10 +977,20 @@ CONV_FORMS_OWN_ISA_TABLE = Table(
            V(_CZ, ("summary", "forward/auto", setting, "median_ms", "32000"), "{:,.0f} ms"),
            V(_CZ, ("summary", "forward/auto", setting, "median_ms", "1000000"), "{:,.0f} ms"))
           for setting in ("after", "after_plain_convolutions")))
-CPU_TARGETS_TABLE = _targets_table(_CF)
 CONV_FORMS_REMAT_TABLE = _settings_table("cpu_step_avx2_convolutions_remat.json", ("before", "after", "after_remat"))
-TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_OWN_ISA_TABLE, CPU_TARGETS_TABLE,
-           CONV_FORMS_REMAT_TABLE)
+# Rows U5-V as one convolution (`ops.conv_chain_same`)
+_CH = "cpu_step_avx2_chain.json"
+CHAIN_TABLE = _settings_table(_CH, ("before", "after"), jobs="train,forward")
+CHAIN_FORWARD_TABLE = _forward_table(_CH, ("before", "after"))
+CHAIN_STEPS_PEAK = Quote(
+    B, "After the warm-up steps, the timed steps of \"after\" alone peak at {} (the peak above is the process's, from "
+       "its start): {} projected onto the issue's Zen 3.",
+    (V(_CH, ("summary", "train/auto", "after", "steps_peak_rss_gb"), "{:.2f} GB"),
+     V(_CH, "projection_zen3/train_step_32000_steps_peak_gb", "{:.2f} GB")))
+CPU_TARGETS_TABLE = _targets_table(_CH)
+TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_OWN_ISA_TABLE, CONV_FORMS_REMAT_TABLE,
+           CHAIN_TABLE, CHAIN_FORWARD_TABLE, CPU_TARGETS_TABLE)
+QUOTES += (CHAIN_STEPS_PEAK,)
 
 # -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
 _HC = "head_cost_cpu.json"

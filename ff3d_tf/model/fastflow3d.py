@@ -210,24 +210,36 @@ class FastFlow3D(keras.Model):
         Row V (a 3x3 convolution) and the head's grid part (`UngridHead.composed_with`: a linear map of V's 64
         channels to 3 for every cell) are both linear with nothing between them, so they are one 3x3 convolution to 3
         channels whose kernel is V's composed with the head's: row V's arithmetic for 3 output channels instead of 64,
-        forward and backward (the gradients of both kernels follow from the composed one's), the same values up to
-        float rounding. The composed convolution runs in float32 under every precision, as the head always has. (With
-        `compile.convolution_forms` "plain", row V and then the head's grid part.)"""
+        forward and backward (the gradients of every kernel follow from the composed one's), the same values up to
+        float rounding. It runs in float32 under every precision, as the head always has.
+
+        Where the dense stages compute in float32 and XLA compiles them for training (mode xla) or they run for
+        inference, row U's U5 and U6 (3x3 convolutions, linear with nothing between them and V either) join that
+        convolution: row U's merged input to the 3 channels in one pass (`ops.conv_chain_same`: the three kernels
+        composed into one 7x7 kernel, a matrix product to its 147 taps and shifted sums, the cells near the border
+        by the chain itself), a fraction of the three convolutions' arithmetic. Training on TensorFlow's own kernels
+        (modes hybrid and none) keeps U5 and U6 as they are: the shifted sums' gradients, op by op, cost more there
+        than the convolutions they replace (docs/benchmarks.md, "The convolutions' forms"); so does bfloat16, whose
+        oneDNN convolutions the float32 product would replace. (With `compile.convolution_forms` "plain", row V and
+        then the head's grid part.)"""
         if self.head == "gru":
             return self.dense_stages(bev_features, training)
         k_grid = self.head_y.composed_with(self.head_z)[0]
         if not compile_lib.fast_convolutions():
             return ops.dense_last_axis(tf.cast(self.dense_stages(bev_features, training), tf.float32), k_grid)
-        x = self.unet(bev_features, training)
         with tf.name_scope(self.conv_v.name):
             kernel_v = tf.cast(self.conv_v.kernel, tf.float32)  # [3, 3, C_U, C_V]
-            kernel = tf.matmul(tf.reshape(kernel_v, [-1, kernel_v.shape[-1]]), tf.cast(k_grid, tf.float32))
-            kernel = tf.reshape(kernel, kernel_v.shape[:-1] + [kernel.shape[-1]])  # [3, 3, C_U, 3]
-            return tf.nn.conv2d(tf.cast(x, tf.float32), kernel, 1, "SAME")
+            kernel = ops.dense_last_axis(kernel_v, tf.cast(k_grid, tf.float32))  # [3, 3, C_U, 3]
+        if self.conv_dtype != "float32" or (training and self.compile_mode != "xla"):
+            return tf.nn.conv2d(tf.cast(self.unet(bev_features, training), tf.float32), kernel, 1, "SAME")
+        last = self.upsample_skips[-1]
+        u4 = self.unet(bev_features, training, merged_last=True)
+        return ops.conv_chain_same(u4, [tf.cast(last.u5.kernel, tf.float32), tf.cast(last.u6.kernel, tf.float32),
+                                        kernel])
 
-    def unet(self, bev_features, training=False):
+    def unet(self, bev_features, training=False, merged_last=False):
         """Rows C-U: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> row U's
-        output [B,H,W,C_U] in `conv_dtype`."""
+        output [B,H,W,C_U] in `conv_dtype`; with `merged_last`, what row U's U5 convolves (`UpsampleSkip.merged`)."""
         x = tf.cast(bev_features, self.conv_dtype)
         skips = [x]
         for stage in self.encoder_stages:
@@ -244,7 +256,8 @@ class FastFlow3D(keras.Model):
         # skips: B, F, L, R (paper rows); decoder S(R*, L*), T(S, F*), U(T, B*), V(U).
         x = self.upsample_skips[0]([both(skips[3]), both(skips[2])])
         x = self.upsample_skips[1]([x, both(skips[1])])
-        return self.upsample_skips[2]([x, both(skips[0])])
+        last = self.upsample_skips[2]
+        return (last.merged if merged_last else last)([x, both(skips[0])])
 
     def decode_points(self, grid, encoded):
         """Rows W-Z: flow of the t0 points. `grid` is `grid_stages`' output and `encoded` `encode_points`' dict;

@@ -412,10 +412,13 @@ class UpsampleSkip(keras.layers.Layer):
         self.u6.build(tuple(beta_shape[:-1]) + (self.depth,))
 
     def call(self, inputs):
+        return self.u6(self.u5(self.merged(inputs)))
+
+    def merged(self, inputs):
+        """U4 (U1-U4 of [alpha, beta]): what U5 convolves."""
         alpha, beta = inputs
         u1 = self.u1(alpha)
-        u4 = tf.concat([tf.cast(self.u2(tf.cast(u1, tf.float32)), u1.dtype), self.u3(beta)], -1)
-        return self.u6(self.u5(u4))
+        return tf.concat([tf.cast(self.u2(tf.cast(u1, tf.float32)), u1.dtype), self.u3(beta)], -1)
 
     def get_config(self):
         return {**super().get_config(), "depth": self.depth, "bottleneck_depth": self.bottleneck_depth}

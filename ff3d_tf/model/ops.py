@@ -94,6 +94,87 @@ def _stride2_gradients(x, kernel, dy):
     return dx_pad[:, :h, :w], dkernel
 
 
+def composed_kernel(first, second):
+    """The kernel of `conv(conv(x, first), second)` away from the grid's border: first [n, m, Ci, Cm] and second
+    [k, l, Cm, Co] (stride 1) -> [n + k - 1, m + l - 1, Ci, Co]. Output cell p reads first's tap a of the cell that
+    second's tap b reads, p + a + b (centred offsets), so the composed tap c sums first[a] @ second[b] over a + b = c:
+    each of second's taps adds first's kernel, mapped to Co channels, placed at that tap's offset."""
+    k, l = second.shape[0], second.shape[1]
+    return tf.add_n([tf.pad(dense_last_axis(first, second[i, j]), [[i, k - 1 - i], [j, l - 1 - j], [0, 0], [0, 0]])
+                     for i in range(k) for j in range(l)])
+
+
+def conv2d_same_by_taps(x, kernel):
+    """`tf.nn.conv2d(x, kernel, 1, "SAME")` for x [B,H,W,Ci] (static H, W) and an odd-sized kernel [n, m, Ci, Co] with
+    few output channels, as one matrix product and shifted sums: every tap's kernel side by side, [Ci, n * m * Co],
+    gives each cell its n * m taps' values; output cell (y, x) adds tap (i, j)'s value of cell (y + i - n // 2,
+    x + j - m // 2) (zero outside the grid). A convolution to a few channels is a matrix product with a narrow
+    output, which keeps little of the CPU's arithmetic busy; this one's product is n * m * Co wide, and its gradients
+    are such products too, the shifted sums a fused pass over memory."""
+    n, m, ci, co = kernel.shape
+    h, w = x.shape[1], x.shape[2]
+    values = dense_last_axis(x, tf.reshape(tf.transpose(kernel, [2, 0, 1, 3]), [ci, n * m * co]))
+    shifted = []
+    for i in range(n):
+        for j in range(m):
+            dy, dx = i - n // 2, j - m // 2  # the cell read, relative to the output cell
+            tap = values[:, max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0), (i * m + j) * co:(i * m + j + 1) * co]
+            shifted.append(tf.pad(tap, [[0, 0], [max(-dy, 0), max(dy, 0)], [max(-dx, 0), max(dx, 0)], [0, 0]]))
+    return tf.add_n(shifted)
+
+
+def conv_chain_same(x, kernels):
+    """`conv(... conv(conv(x, k1), k2) ..., kn)` with SAME padding, stride 1, no bias and nothing between, for x
+    [B,H,W,C] (static H, W) and square odd kernels: one convolution by the composed kernel (`composed_kernel`,
+    `conv2d_same_by_taps`), the same values up to float rounding.
+
+    The composed kernel alone is not the chain near the border: the chain pads each intermediate grid with zeros,
+    while the composed kernel sees the intermediate values that the cells just outside the grid would have. That
+    changes the output cells within `ring` = (sum of the radii but the first kernel's) of the border; those are
+    computed by the chain itself, on the border strips of x that hold them (`ring` plus the total radius wide: a
+    strip's cut edge changes only the cells within the total radius of it). A grid too small for the strips runs
+    the chain as it is."""
+    def chain(t):
+        for k in kernels:
+            t = tf.nn.conv2d(t, k, 1, "SAME")
+        return t
+
+    radii = [k.shape[0] // 2 for k in kernels]
+    ring, strip = sum(radii[1:]), sum(radii[1:]) + sum(radii)
+    h, w = x.shape[1], x.shape[2]
+    if len(kernels) == 1:
+        return conv2d_same_by_taps(x, kernels[0])
+    if h < 2 * strip or w < 2 * strip:
+        return chain(x)
+    kernel = kernels[0]
+    for k in kernels[1:]:
+        kernel = composed_kernel(kernel, k)
+    x, top, bottom, left, right = _border_strips(x, strip)
+    inner = conv2d_same_by_taps(x, kernel)[:, ring:h - ring, ring:w - ring]
+    top, bottom = chain(top)[:, :ring], chain(bottom)[:, strip - ring:]
+    left, right = chain(left)[:, ring:h - ring, :ring], chain(right)[:, ring:h - ring, strip - ring:]
+    return tf.concat([top, tf.concat([left, inner, right], 2), bottom], 1)
+
+
+@tf.custom_gradient
+def _border_strips(x, width):
+    """x [B,H,W,C] -> (x, its first and last `width` rows, its first and last `width` columns). The gradient adds the
+    strips' gradients into x's own in one pass (the slices' own gradients would each be a zero-filled grid of x's
+    size, all alive at once)."""
+    h, w = x.shape[1], x.shape[2]
+
+    def grad(dx, d_top, d_bottom, d_left, d_right):
+        bands = []
+        for (r0, r1), d_rows in (((0, width), d_top), ((width, h - width), None), ((h - width, h), d_bottom)):
+            band = dx[:, r0:r1]
+            band = tf.concat([band[:, :, :width] + d_left[:, r0:r1], band[:, :, width:w - width],
+                              band[:, :, w - width:] + d_right[:, r0:r1]], 2)
+            bands.append(band if d_rows is None else band + d_rows)
+        return tf.concat(bands, 1), None
+
+    return (tf.identity(x), x[:, :width], x[:, h - width:], x[:, :, :width], x[:, :, w - width:]), grad
+
+
 def _chunking(total, static_total, chunk_size):
     """(chunk, number of chunks) for `total` points (a tensor; `static_total` its value if known, else None): Python
     ints when the count is static or `chunk_size >= ONE_CHUNK` makes it one chunk, tensors otherwise."""

@@ -123,7 +123,9 @@ def train_child(config: str, overrides: list, mode: str, points: int, steps: int
                 convolution_forms: str = "fast") -> dict:
     """(In a child.) The Trainer's step in compile `mode` (resolved) on one labelled benchmark example: "step_ms" and
     "step_cpu_ms" of each of `steps` steps after `warmup`, "peak_rss_gb" (the process's peak resident memory from its
-    start to the last step: libraries, compilation, every step), and with `stages` the step's parts (`stage_times`).
+    start to the last step: libraries, compilation, every step), "steps_peak_rss_gb" (the peak of the timed steps
+    alone, after the warm-up: what a training job holds from then on; None where the peak cannot be reset), and with
+    `stages` the step's parts (`stage_times`).
     `malloc_arena_max`: applied before TensorFlow starts, as tools/_common.py does (`cpu.limit_malloc_arenas`)."""
     arenas = cpu.limit_malloc_arenas({"MALLOC_ARENA_MAX": malloc_arena_max or ""})
     import numpy as np
@@ -131,12 +133,17 @@ def train_child(config: str, overrides: list, mode: str, points: int, steps: int
     cfg = _setup(config, overrides, point_programs, convolution_forms)
     labelled, padded = bench_steps.example(cfg, np.random.default_rng(0), points, labels=True)
     step = bench.fetched(bench_steps.train_steps(cfg, {mode: mode}, labelled)[mode])
-    readings = bench.measure(step, steps, warmup, reading=bench.timed_with_usage)
+    bench.measure(step, 0, warmup)
+    process_peak_gb = bench.proc_status("VmHWM")
+    peak_reset = bench.reset_peak_rss()
+    readings = bench.measure(step, steps, 0, reading=bench.timed_with_usage)
+    steps_peak_gb = bench.proc_status("VmHWM")
     out = {**_header(mode), "points": points, "padded_points": padded, "point_programs": point_programs,
            "convolution_forms": convolution_forms,
            "malloc_arena_max": arenas, "step_ms": [r["ms"] for r in readings],
            "step_cpu_ms": [r["cpu_ms"] for r in readings],
-           "peak_rss_gb": bench.proc_status("VmHWM"), "rss_after_gb": bench.proc_status("VmRSS")}
+           "peak_rss_gb": max(process_peak_gb, steps_peak_gb),
+           "steps_peak_rss_gb": steps_peak_gb if peak_reset else None, "rss_after_gb": bench.proc_status("VmRSS")}
     out["step_median_ms"] = bench.middle(out["step_ms"])
     if stages:  # after the steps: the peak above is the step's alone
         out["stage_runs"] = stage_runs
@@ -338,6 +345,11 @@ def _train_projection(measured_before: Mapping, measured: Mapping, before: Mappi
                                                            out["train_step_32000_ms_by_cpu_time"])
     mem = measured["peak_rss_gb"] / measured_before["peak_rss_gb"]
     out["train_step_32000_peak_gb"] = before["train_step_32000_peak_gb"] * mem
+    if measured.get("steps_peak_rss_gb"):
+        # The steps' own peak after the warm-up (compilation's heap released), against the same "before" process
+        # peak as above: "before" (TensorFlow's kernels, no compilation of the step) peaks in its steps anyway.
+        out["train_step_32000_steps_peak_gb"] = (before["train_step_32000_peak_gb"] * measured["steps_peak_rss_gb"] /
+                                                 measured_before["peak_rss_gb"])
     return out
 
 
@@ -476,6 +488,8 @@ def summarize(variants: Mapping) -> dict:
                                 "rounds": len(readings),
                                 "step_median_ms": bench.middle([x["step_median_ms"] for x in readings]),
                                 "peak_rss_gb": bench.middle([x["peak_rss_gb"] for x in readings]),
+                                "steps_peak_rss_gb": bench.middle([x["steps_peak_rss_gb"] for x in readings])
+                                if all(x.get("steps_peak_rss_gb") for x in readings) else None,
                                 "step_cpu_median_ms": bench.middle([bench.middle(x["step_cpu_ms"]) for x in readings])
                                 if all(x.get("step_cpu_ms") for x in readings) else None,
                                 **({"stages": first["stage_summary"]} if "stage_summary" in first else {})}

@@ -1,7 +1,8 @@
 """The model's convolution forms (`compile.convolution_forms`): the stride-2 convolution whose gradients are computed
 phase by phase (`ops.conv2d_stride2`), the 1x1 convolution as a matrix product and the choice between them
-(`layers.Conv2D`), and row V composed with the head's grid part (`FastFlow3D.grid_stages`). Each against TensorFlow's
-own convolution and its gradients, or against the model's plain forms."""
+(`layers.Conv2D`), a chain of convolutions as one composed convolution (`ops.conv_chain_same`) and rows U5-V composed
+with the head's grid part (`FastFlow3D.grid_stages`). Each against TensorFlow's own convolutions and their gradients,
+or against the model's plain forms."""
 import contextlib
 
 import keras
@@ -48,6 +49,84 @@ def test_conv2d_stride2_values_and_gradients_are_tensorflows(shape, jit_compile)
     for name, g, v in zip(("output", "input gradient", "kernel gradient"), got, want):
         assert g.shape == v.shape, name
         np.testing.assert_allclose(g, v, rtol=1e-5, atol=1e-5 * np.abs(v).max(), err_msg=name)
+
+
+def _chain(x, kernels):
+    for k in kernels:
+        x = tf.nn.conv2d(x, k, 1, "SAME")
+    return x
+
+
+def _random(rng, *shape):
+    return tf.constant(rng.normal(size=shape).astype(np.float32))
+
+
+def test_composed_kernel_is_the_two_convolutions():
+    """Without padding (no border), a convolution by `composed_kernel(a, b)` is the convolution by a then by b."""
+    rng = np.random.default_rng(1)
+    x, a, b = _random(rng, 1, 9, 11, 4), _random(rng, 3, 3, 4, 5), _random(rng, 5, 3, 5, 2)
+    want = tf.nn.conv2d(tf.nn.conv2d(x, a, 1, "VALID"), b, 1, "VALID").numpy()
+    composed = ops.composed_kernel(a, b)
+    assert composed.shape == (7, 5, 4, 2)
+    np.testing.assert_allclose(tf.nn.conv2d(x, composed, 1, "VALID").numpy(), want, rtol=1e-5,
+                               atol=1e-5 * np.abs(want).max())
+
+
+def _chain_values_and_gradients(fn, x, kernels, dy, jit_compile):
+    def run(x, *kernels):
+        with tf.GradientTape() as tape:
+            tape.watch([x, *kernels])
+            y = fn(x, list(kernels))
+        return [y] + tape.gradient(y, [x, *kernels], output_gradients=dy)
+    return [t.numpy() for t in tf.function(run, jit_compile=jit_compile)(x, *kernels)]
+
+
+@pytest.mark.parametrize("jit_compile", [False, True])
+@pytest.mark.parametrize("kernel_shape", [(3, 3), (5, 3), (1, 1)])
+def test_conv2d_same_by_taps_is_tensorflows(kernel_shape, jit_compile):
+    """The matrix product to every tap and the shifted sums: TensorFlow's SAME convolution, its input gradient and
+    its kernel gradient, on a grid that is not square and with kernels that are not."""
+    rng = np.random.default_rng(2)
+    x, kernel, dy = _random(rng, 2, 7, 9, 5), _random(rng, *kernel_shape, 5, 3), _random(rng, 2, 7, 9, 3)
+    want = _chain_values_and_gradients(_chain, x, [kernel], dy, jit_compile)
+    got = _chain_values_and_gradients(lambda x, k: ops.conv2d_same_by_taps(x, k[0]), x, [kernel], dy, jit_compile)
+    for name, g, v in zip(("output", "input gradient", "kernel gradient"), got, want):
+        assert g.shape == v.shape, name
+        np.testing.assert_allclose(g, v, rtol=1e-5, atol=1e-5 * np.abs(v).max(), err_msg=name)
+
+
+@pytest.mark.parametrize("jit_compile", [False, True])
+@pytest.mark.parametrize("grid", [(12, 14), (16, 10), (6, 9)])
+def test_conv_chain_same_is_the_chain(grid, jit_compile):
+    """Three 3x3 SAME convolutions one after the other (as rows U5, U6 and V with the head): `conv_chain_same`'s
+    output and the gradients of its input and of every kernel equal the chain's, with the border strips (12 x 14,
+    16 x 10: the smallest sides that take them are 10) and without them (6 x 9: the chain itself)."""
+    rng = np.random.default_rng(3)
+    h, w = grid
+    x, dy = _random(rng, 1, h, w, 6), _random(rng, 1, h, w, 3)
+    kernels = [_random(rng, 3, 3, 6, 5), _random(rng, 3, 3, 5, 4), _random(rng, 3, 3, 4, 3)]
+    want = _chain_values_and_gradients(_chain, x, kernels, dy, jit_compile)
+    got = _chain_values_and_gradients(ops.conv_chain_same, x, kernels, dy, jit_compile)
+    names = ("output", "input gradient", "first kernel's gradient", "second kernel's gradient",
+             "third kernel's gradient")
+    for name, g, v in zip(names, got, want):
+        assert g.shape == v.shape, name
+        np.testing.assert_allclose(g, v, rtol=1e-5, atol=1e-5 * np.abs(v).max(), err_msg=name)
+
+
+def test_the_composed_kernel_alone_differs_on_the_border():
+    """What the border strips of `conv_chain_same` are for: the composed kernel alone differs from the chain on the
+    cells within two of the border (the chain's zero padding of its intermediate grids) and equals it inside."""
+    rng = np.random.default_rng(4)
+    x = _random(rng, 1, 12, 12, 4)
+    kernels = [_random(rng, 3, 3, 4, 4), _random(rng, 3, 3, 4, 4), _random(rng, 3, 3, 4, 2)]
+    want = _chain(x, kernels).numpy()
+    composed = ops.composed_kernel(ops.composed_kernel(kernels[0], kernels[1]), kernels[2])
+    alone = ops.conv2d_same_by_taps(x, composed).numpy()
+    tolerance = 1e-5 * np.abs(want).max()
+    np.testing.assert_allclose(alone[:, 2:-2, 2:-2], want[:, 2:-2, 2:-2], atol=tolerance)
+    for ring in (alone[:, :2] - want[:, :2], alone[:, -2:] - want[:, -2:], alone[:, :, :2] - want[:, :, :2]):
+        assert np.abs(ring).max() > 100 * tolerance
 
 
 def test_stride2_by_phases_applies_only_where_it_computes_the_same():
@@ -127,19 +206,21 @@ def _inputs(seed=3, n0=400, n1=380):
             "points_xyz_tm1_in_t0": p1, "point_features_tm1": f1, "point_mask_tm1": tf.ones([1, n1], tf.bool)}
 
 
-def test_grid_stages_compose_row_v_with_the_head(tiny_config):
-    """With the paper head, `grid_stages` is row V (`dense_stages`) followed by the head's grid kernel, computed as
-    one convolution: the same cell flow as the two one after the other."""
+def test_grid_stages_compose_rows_u5_to_v_with_the_head(tiny_config):
+    """With the paper head, `grid_stages` is rows C-V (`dense_stages`) followed by the head's grid kernel: for
+    inference computed as one chain from row U's merged input (U5, U6, V and the head), for training on TensorFlow's
+    kernels (mode none) as row V with the head; the same cell flow as the layers one after the other."""
     keras.utils.set_random_seed(4)
     model = build_model(tiny_config, "none")
     bev = tf.constant(np.random.default_rng(5).normal(size=(
         2, tiny_config.grid.num_pillars_y, tiny_config.grid.num_pillars_x,
         tiny_config.model.point_feature_dim)).astype(np.float32))
     k_grid = model.head_y.composed_with(model.head_z)[0]
-    want = tf.einsum("bhwc,cu->bhwu", model.dense_stages(bev), k_grid).numpy()
-    got = model.grid_stages(bev).numpy()
-    assert got.shape == want.shape and got.shape[-1] == 3 and np.abs(want).max() > 0
-    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+    for training in (True, False):
+        want = tf.einsum("bhwc,cu->bhwu", model.dense_stages(bev, training), k_grid).numpy()
+        got = model.grid_stages(bev, training).numpy()
+        assert got.shape == want.shape and got.shape[-1] == 3 and np.abs(want).max() > 0
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
     with _forms("plain"):
         np.testing.assert_allclose(model.grid_stages(bev).numpy(), want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
 
