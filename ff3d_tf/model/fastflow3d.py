@@ -234,8 +234,9 @@ class FastFlow3D(keras.Model):
             return tf.nn.conv2d(tf.cast(self.unet(bev_features, training), tf.float32), kernel, 1, "SAME")
         last = self.upsample_skips[-1]
         u4 = self.unet(bev_features, training, merged_last=True)
-        return ops.conv_chain_same(u4, [tf.cast(last.u5.kernel, tf.float32), tf.cast(last.u6.kernel, tf.float32),
-                                        kernel])
+        with tf.name_scope(self.conv_v.name):
+            return ops.conv_chain_same(u4, [tf.cast(last.u5.kernel, tf.float32),
+                                            tf.cast(last.u6.kernel, tf.float32), kernel])
 
     def unet(self, bev_features, training=False, merged_last=False):
         """Rows C-U: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> row U's
@@ -254,10 +255,22 @@ class FastFlow3D(keras.Model):
             return tf.concat(tf.split(t, 2, axis=0), -1)
 
         # skips: B, F, L, R (paper rows); decoder S(R*, L*), T(S, F*), U(T, B*), V(U).
-        x = self.upsample_skips[0]([both(skips[3]), both(skips[2])])
-        x = self.upsample_skips[1]([x, both(skips[1])])
-        last = self.upsample_skips[2]
-        return (last.merged if merged_last else last)([x, both(skips[0])])
+        s, t, u = self.upsample_skips
+        if not compile_lib.fast_convolutions():
+            x = t([s([both(skips[3]), both(skips[2])]), both(skips[1])])
+            if merged_last:
+                with tf.name_scope(u.name):
+                    return u.merged([x, both(skips[0])])
+            return u([x, both(skips[0])])
+        # S's and T's outputs are read only by the next block's U1: each block computes that U1 itself
+        # (`UpsampleSkip.into_next`). (Methods called directly: each in its row's name scope, as a call would be.)
+        with tf.name_scope(s.name):
+            u1_of_t = s.into_next([both(skips[3]), both(skips[2])], t)
+        with tf.name_scope(t.name):
+            u1_of_u = t.into_next([None, both(skips[1])], u, u1=u1_of_t)
+        with tf.name_scope(u.name):
+            u4 = u.merged([None, both(skips[0])], u1=u1_of_u)
+            return u4 if merged_last else u.u6(u.u5(u4))
 
     def decode_points(self, grid, encoded):
         """Rows W-Z: flow of the t0 points. `grid` is `grid_stages`' output and `encoded` `encode_points`' dict;

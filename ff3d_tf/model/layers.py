@@ -414,11 +414,22 @@ class UpsampleSkip(keras.layers.Layer):
     def call(self, inputs):
         return self.u6(self.u5(self.merged(inputs)))
 
-    def merged(self, inputs):
-        """U4 (U1-U4 of [alpha, beta]): what U5 convolves."""
+    def merged(self, inputs, u1=None):
+        """U4 (U1-U4 of [alpha, beta]): what U5 convolves. `u1`: U1's output, where the caller has computed it (then
+        alpha is not read)."""
         alpha, beta = inputs
-        u1 = self.u1(alpha)
+        u1 = self.u1(alpha) if u1 is None else u1
         return tf.concat([tf.cast(self.u2(tf.cast(u1, tf.float32)), u1.dtype), self.u3(beta)], -1)
+
+    def into_next(self, inputs, following: "UpsampleSkip", u1=None):
+        """`following.u1(self(inputs))`, `following`'s U1 of this block's output, as this block computes it when U1
+        is all that reads its output: U6 (3x3) and U1 (1x1) are linear with nothing between them, so they are one
+        3x3 convolution to U1's channels, whose kernel is U6's mapped by U1's (`ops.composed_kernel`; a 1x1 kernel
+        composes with no change at the border). The same values up to float rounding, for U1's fewer output channels
+        instead of U6's. `u1`: this block's own U1 output, as `merged` takes it."""
+        kernel = ops.composed_kernel(self.u6.kernel, following.u1.kernel)
+        x = self.u5(self.merged(inputs, u1))
+        return tf.nn.conv2d(x, tf.cast(kernel, x.dtype), 1, "SAME")
 
     def get_config(self):
         return {**super().get_config(), "depth": self.depth, "bottleneck_depth": self.bottleneck_depth}

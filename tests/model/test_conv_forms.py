@@ -1,7 +1,8 @@
 """The model's convolution forms (`compile.convolution_forms`): the stride-2 convolution whose gradients are computed
 phase by phase (`ops.conv2d_stride2`), the 1x1 convolution as a matrix product and the choice between them
-(`layers.Conv2D`), a chain of convolutions as one composed convolution (`ops.conv_chain_same`) and rows U5-V composed
-with the head's grid part (`FastFlow3D.grid_stages`). Each against TensorFlow's own convolutions and their gradients,
+(`layers.Conv2D`), a chain of convolutions as one composed convolution (`ops.conv_chain_same`), rows U5-V composed
+with the head's grid part (`FastFlow3D.grid_stages`) and each decoder block's U6 with the next block's U1
+(`layers.UpsampleSkip.into_next`). Each against TensorFlow's own convolutions and their gradients,
 or against the model's plain forms."""
 import contextlib
 
@@ -223,6 +224,20 @@ def test_grid_stages_compose_rows_u5_to_v_with_the_head(tiny_config):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
     with _forms("plain"):
         np.testing.assert_allclose(model.grid_stages(bev).numpy(), want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+
+
+def test_upsample_skip_into_next_is_the_next_blocks_u1(tiny_config):
+    """Row S's output read by row T's U1, as S computes it (`UpsampleSkip.into_next`: U6 and T's U1 as one 3x3
+    convolution): the same as the layers one after the other, also where S's own U1 output is given."""
+    keras.utils.set_random_seed(7)
+    s, t, _ = build_model(tiny_config, "none").upsample_skips
+    rng = np.random.default_rng(8)
+    alpha = _random(rng, 1, 4, 4, s.u1.kernel.shape[2])
+    beta = _random(rng, 1, 8, 8, s.u3.kernel.shape[2])
+    want = t.u1(s([alpha, beta])).numpy()
+    assert want.shape == (1, 8, 8, t.u1.filters) and np.abs(want).max() > 0
+    for got in (s.into_next([alpha, beta], t), s.into_next([None, beta], t, u1=s.u1(alpha))):
+        np.testing.assert_allclose(got.numpy(), want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
 
 
 def test_training_gradients_of_the_fast_forms_equal_the_plain_ones(tiny_config):

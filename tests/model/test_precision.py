@@ -184,12 +184,13 @@ def test_bfloat16_convolutions_float32_points_in_the_graph(models):
     convs = _ops_by_type(graph_def, "Conv2D")
     assert all(fn == "" for fn, _ in convs)
     dtypes = collections.Counter(tf.as_dtype(node.attr["T"].type).name for _, node in convs)
-    # C-R and the two 3x3 convolutions of each Upsample-Skip in bfloat16 (its 1x1 ones are matrix products,
-    # `layers.Conv2D`); V with the head's grid part in float32 (`FastFlow3D.grid_stages`).
+    # C-R and the two 3x3 convolutions of each Upsample-Skip in bfloat16 (S's and T's U6 with the next block's U1,
+    # `UpsampleSkip.into_next`; the other 1x1 ones, S's U1 and every U3, are matrix products, `layers.Conv2D`); V
+    # with the head's grid part in float32 (`FastFlow3D.grid_stages`).
     assert dtypes == {"bfloat16": sum(len(s) for s in m16.encoder_stages) + 2 * 3, "float32": 1}, dtypes
     one_by_one = [n for fn, n in _ops_by_type(graph_def, "MatMul")
                   if fn == "" and ("/U1" in n.name or "/U3" in n.name)]
-    assert len(one_by_one) == 2 * 3 and all(n.attr["T"].type == tf.bfloat16.as_datatype_enum for n in one_by_one)
+    assert len(one_by_one) == 1 + 3 and all(n.attr["T"].type == tf.bfloat16.as_datatype_enum for n in one_by_one)
     norms = _ops_by_type(graph_def, "FusedBatchNormV3")
     assert norms and all(n.attr["T"].type == tf.bfloat16.as_datatype_enum and
                          n.attr["U"].type == tf.float32.as_datatype_enum for _, n in norms)
