@@ -658,7 +658,8 @@ _HB = "heads_synthetic.json"
 _HB_SEED1 = "heads_synthetic_seed1.json"  # the same run with train.seed=1
 _HB_DOC = "docs/training.md"
 _HB_VARIANTS = (("paper_l2", "paper head + L2"), ("gru_l2", "GRU head + L2"), ("gru_deflow", "GRU head + DeFlow loss"),
-                ("gru_deltaflow", "GRU head + DeltaFlow loss"), ("gru2_deltaflow", "GRU (2 iterations) + DeltaFlow loss"),
+                ("gru_deltaflow", "GRU head + DeltaFlow loss"),
+                ("gru2_deltaflow", "GRU (2 iterations) + DeltaFlow loss"),
                 ("gru_deflow_augment", "GRU + DeFlow + augmentation"),
                 ("zero_flow", "zero flow"))
 _HB_COLUMNS = ("moving_mps", "stationary_mps", "fg_dynamic_epe_m", "three_way_mean_epe_m", "bucketed_dynamic_norm_epe")

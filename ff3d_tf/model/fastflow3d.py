@@ -219,8 +219,8 @@ class FastFlow3D(keras.Model):
         composed into one 7x7 kernel, a matrix product to its 147 taps and shifted sums, the cells near the border
         by the chain itself), a fraction of the three convolutions' arithmetic. Training on TensorFlow's own kernels
         (modes hybrid and none) keeps U5 and U6 as they are: the shifted sums' gradients, op by op, cost more there
-        than the convolutions they replace (docs/benchmarks.md, "The convolutions' forms"); so does bfloat16, whose
-        oneDNN convolutions the float32 product would replace. (With `compile.convolution_forms` "plain", row V and
+        than the convolutions they replace; so does bfloat16, whose oneDNN convolutions the float32 product would
+        replace. (With `compile.convolution_forms` "plain", row V and
         then the head's grid part.)"""
         if self.head == "gru":
             return self.dense_stages(bev_features, training)

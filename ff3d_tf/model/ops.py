@@ -257,7 +257,8 @@ def chunked_segment_sum(fn, points, point_valid, weights, segment_ids, num_segme
                 return (tf.tensor_scatter_nd_update(d_points, [[i]], d_chunk[None]),
                         [d + x for d, x in zip(d_weights, d_weights_chunk)])
 
-            d_points, d_weights = _over_chunks(num_chunks, backward, (tf.zeros_like(points), [tf.zeros_like(w) for w in weights]))
+            d_points, d_weights = _over_chunks(num_chunks, backward,
+                                               (tf.zeros_like(points), [tf.zeros_like(w) for w in weights]))
             return [d_points] + d_weights
 
         return state, grad

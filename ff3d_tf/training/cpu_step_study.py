@@ -346,8 +346,8 @@ def _train_projection(measured_before: Mapping, measured: Mapping, before: Mappi
     mem = measured["peak_rss_gb"] / measured_before["peak_rss_gb"]
     out["train_step_32000_peak_gb"] = before["train_step_32000_peak_gb"] * mem
     if measured.get("steps_peak_rss_gb"):
-        # The steps' own peak after the warm-up (compilation's heap released), against the same "before" process
-        # peak as above: "before" (TensorFlow's kernels, no compilation of the step) peaks in its steps anyway.
+        # The steps' own peak after the warm-up (the program compiled and run twice), against the same "before"
+        # process peak as above: "before" (TensorFlow's kernels, no compilation of the step) peaks in its steps.
         out["train_step_32000_steps_peak_gb"] = (before["train_step_32000_peak_gb"] * measured["steps_peak_rss_gb"] /
                                                  measured_before["peak_rss_gb"])
     return out
