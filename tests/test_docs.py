@@ -965,19 +965,26 @@ def _forward_table(file, settings):
 
 
 CONV_FORMS_FORWARD_TABLE = _forward_table(_CF, ("before", "after", "after_plain_convolutions"))
-_CZ = "cpu_step_zen4_convolutions.json"
-CONV_FORMS_OWN_ISA_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_cpu_step.py --cap none --jobs train,forward --modes auto --settings "
-                "after,after_plain_convolutions --rounds {} --no_stages` (`benchmarks/{}`), the same figures on {} "
-                "({} cores, family/model {}) with its own kernels (TensorFlow's oneDNN operations on, AVX-512):",
-             (V(_CZ, "rounds"), _CZ, V(_CZ, "cpu/model_name"), V(_CZ, "cpu/cpu_count"), V(_CZ, "cpu/family_model"))),
-    ("setting", "runs", "training step", "peak", "forward, 32,000 points", "forward, 1,000,000 points"), "llrrrr",
-    tuple((_STEP_SETTINGS[setting], V(_CZ, ("summary", "train/auto", setting, "mode")),
-           V(_CZ, ("summary", "train/auto", setting, "step_median_ms"), "{:,.0f} ms"),
-           V(_CZ, ("summary", "train/auto", setting, "peak_rss_gb"), "{:.2f} GB"),
-           V(_CZ, ("summary", "forward/auto", setting, "median_ms", "32000"), "{:,.0f} ms"),
-           V(_CZ, ("summary", "forward/auto", setting, "median_ms", "1000000"), "{:,.0f} ms"))
-          for setting in ("after", "after_plain_convolutions")))
+
+
+def _own_isa_table(file, settings):
+    """The training step and the forward of each of `settings` in `file`, a study run with the CPU's own kernels."""
+    return Table(
+        B, Quote(B, f"`tools/benchmark_cpu_step.py --cap none --jobs train,forward --modes auto --settings "
+                    f"{','.join(settings)} --rounds {{}} --no_stages` (`benchmarks/{file}`), the same figures on {{}} "
+                    "({} cores, family/model {}) with its own kernels (TensorFlow's oneDNN operations on, AVX-512):",
+                 (V(file, "rounds"), V(file, "cpu/model_name"), V(file, "cpu/cpu_count"),
+                  V(file, "cpu/family_model"))),
+        ("setting", "runs", "training step", "peak", "forward, 32,000 points", "forward, 1,000,000 points"), "llrrrr",
+        tuple((_STEP_SETTINGS[setting], V(file, ("summary", "train/auto", setting, "mode")),
+               V(file, ("summary", "train/auto", setting, "step_median_ms"), "{:,.0f} ms"),
+               V(file, ("summary", "train/auto", setting, "peak_rss_gb"), "{:.2f} GB"),
+               V(file, ("summary", "forward/auto", setting, "median_ms", "32000"), "{:,.0f} ms"),
+               V(file, ("summary", "forward/auto", setting, "median_ms", "1000000"), "{:,.0f} ms"))
+              for setting in settings))
+
+
+CONV_FORMS_OWN_ISA_TABLE = _own_isa_table("cpu_step_zen4_convolutions.json", ("after", "after_plain_convolutions"))
 CONV_FORMS_REMAT_TABLE = _settings_table("cpu_step_avx2_convolutions_remat.json", ("before", "after", "after_remat"))
 # Rows U5-V as one convolution (`ops.conv_chain_same`)
 _CH = "cpu_step_avx2_chain.json"
@@ -989,8 +996,9 @@ CHAIN_STEPS_PEAK = Quote(
     (V(_CH, ("summary", "train/auto", "after", "steps_peak_rss_gb"), "{:.2f} GB"),
      V(_CH, "projection_zen3/train_step_32000_steps_peak_gb", "{:.2f} GB")))
 CPU_TARGETS_TABLE = _targets_table(_CH)
+CHAIN_OWN_ISA_TABLE = _own_isa_table("cpu_step_zen4_chain.json", ("after",))
 TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_OWN_ISA_TABLE, CONV_FORMS_REMAT_TABLE,
-           CHAIN_TABLE, CHAIN_FORWARD_TABLE, CPU_TARGETS_TABLE)
+           CHAIN_TABLE, CHAIN_FORWARD_TABLE, CPU_TARGETS_TABLE, CHAIN_OWN_ISA_TABLE)
 QUOTES += (CHAIN_STEPS_PEAK,)
 
 # -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
