@@ -863,6 +863,14 @@ def _target(what, figure, goal, fmt, at_least):
     return what, figure, Calc(fmt, lambda g: g, (goal,)), met
 
 
+def _speed_targets(file, what, key):
+    """The target rows of a speed-up `key` in `file`'s projection: by wall time, then by CPU time."""
+    goal = V(file, f"targets/{key}")
+    return (_target(what, V(file, f"projection_zen3/{key}", "{:.2f}x"), goal, "{:.2f}x", True),
+            _target("the same by CPU time", V(file, f"projection_zen3/{key}_by_cpu_time", "{:.2f}x"), goal, "{:.2f}x",
+                    True))
+
+
 def _targets_table(file):
     """The issue's targets against `file`'s projection onto its Zen 3 figures (`projection_zen3`)."""
     return Table(
@@ -879,28 +887,15 @@ def _targets_table(file):
                   V(file, "peer/ff3d_tf_before/forward_32000_ms", "{:,.0f}"),
                   V(file, "peer/ff3d_tf_before/forward_1000000_ms", "{:,.0f}"))),
         ("figure", "ff3d_tf after", "target", "met"), "lrrl",
-        (_target("training step, 32,000 points: speed-up over the peer",
-                 V(file, "projection_zen3/train_step_speedup_over_peer", "{:.2f}x"),
-                 V(file, "targets/train_step_speedup_over_peer"), "{:.2f}x", True),
-         _target("the same by CPU time",
-                 V(file, "projection_zen3/train_step_speedup_over_peer_by_cpu_time", "{:.2f}x"),
-                 V(file, "targets/train_step_speedup_over_peer"), "{:.2f}x", True),
+        (*_speed_targets(file, "training step, 32,000 points: speed-up over the peer",
+                         "train_step_speedup_over_peer"),
          _target("training step, 32,000 points: peak memory",
                  V(file, "projection_zen3/train_step_32000_peak_gb", "{:.2f} GB"),
                  V(file, "targets/train_step_peak_gb"),
                  "{:.2f} GB", False),
-         _target("forward, 32,000 points: speed-up over the peer",
-                 V(file, "projection_zen3/forward_32000_speedup_over_peer", "{:.2f}x"),
-                 V(file, "targets/forward_32000_speedup_over_peer"), "{:.2f}x", True),
-         _target("the same by CPU time",
-                 V(file, "projection_zen3/forward_32000_speedup_over_peer_by_cpu_time", "{:.2f}x"),
-                 V(file, "targets/forward_32000_speedup_over_peer"), "{:.2f}x", True),
-         _target("forward, 1,000,000 points: speed-up over the peer",
-                 V(file, "projection_zen3/forward_1000000_speedup_over_peer", "{:.2f}x"),
-                 V(file, "targets/forward_1000000_speedup_over_peer"), "{:.2f}x", True),
-         _target("the same by CPU time",
-                 V(file, "projection_zen3/forward_1000000_speedup_over_peer_by_cpu_time", "{:.2f}x"),
-                 V(file, "targets/forward_1000000_speedup_over_peer"), "{:.2f}x", True),
+         *_speed_targets(file, "forward, 32,000 points: speed-up over the peer", "forward_32000_speedup_over_peer"),
+         *_speed_targets(file, "forward, 1,000,000 points: speed-up over the peer",
+                         "forward_1000000_speedup_over_peer"),
          _target("forward: time at 1,000,000 points / time at 32,000 points",
                  V(file, ("summary", "forward/auto", "after", "t1m_over_t32k"), "{:.2f}"),
                  V(file, "targets/forward_1m_over_32k"), "{:.2f}", False)))

@@ -118,9 +118,10 @@ def check_resolved(mode: str) -> str:
     return mode
 
 
-# How the model computes its convolutions: "fast" (the default: `layers.Conv2D`'s forms and, with the paper head, row V
-# composed with the head's grid part, `FastFlow3D.grid_stages`) or "plain" (Keras's convolutions as they are and row V
-# apart from the head, the layout before; kept for the studies that compare the two).
+# How the model computes its convolutions: "fast" (the default: `layers.Conv2D`'s forms, the decoder's U6 composed with
+# the next block's U1, `layers.UpsampleSkip.into_next`, and with the paper head rows V (and where it applies U5, U6)
+# composed with the head's grid part, `FastFlow3D.grid_stages`) or "plain" (Keras's convolutions as they are, one
+# layer after the other, the layout before; kept for the studies that compare the two).
 CONVOLUTION_FORMS = ("fast", "plain")
 convolution_forms = "fast"
 

@@ -139,11 +139,11 @@ def conv_chain_same(x, kernels):
             t = tf.nn.conv2d(t, k, 1, "SAME")
         return t
 
+    if len(kernels) == 1:
+        return conv2d_same_by_taps(x, kernels[0])
     radii = [k.shape[0] // 2 for k in kernels]
     ring, strip = sum(radii[1:]), sum(radii[1:]) + sum(radii)
     h, w = x.shape[1], x.shape[2]
-    if len(kernels) == 1:
-        return conv2d_same_by_taps(x, kernels[0])
     if h < 2 * strip or w < 2 * strip:
         return chain(x)
     kernel = kernels[0]
