@@ -29,6 +29,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from ff3d_tf.cpu import malloc_trim
 from ff3d_tf.schema import CLASS_NAMES, CLASS_NO_LABEL, MODEL_INPUT_KEYS
 
 GB = 1e9
@@ -151,15 +152,6 @@ def _libc():
     if hasattr(libc, "mallinfo2"):
         libc.mallinfo2.restype = _MallInfo2
     return libc
-
-
-def malloc_trim() -> bool:
-    """Returns the heap glibc holds free to the OS (malloc_trim(0)); False where libc is not glibc."""
-    libc = _libc()
-    if libc is None or not hasattr(libc, "malloc_trim"):
-        return False
-    libc.malloc_trim(0)
-    return True
 
 
 def reset_peak_rss(trim: bool = False, path: str = "/proc/self/clear_refs") -> bool:

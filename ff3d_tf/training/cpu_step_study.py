@@ -14,7 +14,9 @@ Every reading comes from a fresh child process (`ff3d_tf.children.run_child`, pi
             "after_onednn" (on request): "after" with TensorFlow's oneDNN operations on;
             "after_remat" (on request): "after" with the encoder's activations recomputed in the backward
             (`model.remat_encoder=true`);
-            "after_plain_convolutions" (on request): "after" with the convolutions of "before" (what the forms save).
+            "after_plain_convolutions" (on request): "after" with the convolutions of "before" (what the forms save);
+            "after_default_arenas", "after_small_pages" (on request): "after" without the start-up's malloc arena
+            limit, without its transparent huge pages (not measured for a job whose start-up has neither).
   job       "train" (the Trainer's own step: forward, loss, backward, Adam; batch 1, the process's peak resident
             memory) or "forward" (the compiled forward at each point count, in one process, round robin).
   mode      `model.compile`: auto, hybrid, xla, none.
@@ -45,7 +47,13 @@ SETTINGS = ("before", "after")
 # start-up's limit saves.
 # "after_plain_convolutions": "after" with `compile_lib.convolution_forms = "plain"`, what the model's convolution forms
 # save.
-ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat", "after_default_arenas", "after_plain_convolutions")
+# "after_small_pages": "after" with glibc's own pages for the blocks it maps (GLIBC_TUNABLES left out), what the
+# start-up's transparent huge pages save.
+ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat", "after_default_arenas", "after_plain_convolutions",
+                           "after_small_pages")
+# The settings that differ from "after" in the environment alone: not measured for a job whose start-up they leave as
+# "after" has it.
+ENVIRONMENT_SETTINGS = ("after_onednn", "after_default_arenas", "after_small_pages")
 REMAT_OVERRIDE = "model.remat_encoder=true"
 JOBS = ("train", "forward")
 MODES = ("auto", "hybrid", "xla", "none")
@@ -85,6 +93,8 @@ def variant_environment(setting: str, job: str, cap: str, base: Mapping | None =
         caps["TF_ENABLE_ONEDNN_OPTS"] = "1"
     if setting == "after_default_arenas":
         caps.pop("MALLOC_ARENA_MAX", None)
+    if setting == "after_small_pages":
+        caps.pop("GLIBC_TUNABLES", None)
     return {**env, **caps}
 
 
@@ -365,7 +375,7 @@ def projection(summary: Mapping, figures: Mapping | None = None) -> dict:
     step, fwd = summary.get("train/auto"), summary.get("forward/auto")
     if both(step):
         out.update(_train_projection(step["before"], step["after"], before, peer))
-        for setting in ("after_remat", "after_default_arenas", "after_plain_convolutions"):
+        for setting in ALL_SETTINGS[len(SETTINGS):]:
             if setting in step and "error" not in step[setting]:
                 out[setting] = _train_projection(step["before"], step[setting], before, peer)
     if both(fwd):
@@ -417,6 +427,8 @@ def study(config: str, overrides: Sequence[str], train_points: int, forward_poin
         key = f"{job}/{mode}"
         result["variants"].setdefault(key, {})
         environment = variant_environment(setting, job, cap)
+        if setting in ENVIRONMENT_SETTINGS and environment == variant_environment("after", job, cap):
+            continue
         resolved = resolved_mode(setting, mode, job, environment)
         if measured.get((job, setting, resolved), key) != key:  # "auto" and the mode it resolves to: one
             result["variants"][key][setting] = {"same_as": measured[(job, setting, resolved)],

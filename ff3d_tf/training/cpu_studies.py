@@ -254,7 +254,7 @@ def memory_child(kind: str, config: str, overrides: list, points: int, steps: in
     out["padded_points"] = padded
     out["between_calls"] = {**snapshot(), "tf_allocator": tf_memory_info()}
     gc.collect()
-    bench.malloc_trim()
+    cpu.malloc_trim()
     out["after_gc_and_malloc_trim"] = snapshot()
     return out
 

@@ -30,7 +30,7 @@ import keras
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf import internals
+from ff3d_tf import cpu, internals
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
 from ff3d_tf.checkpoints import restore_newest_intact
@@ -102,6 +102,7 @@ class Trainer:
         self._stop_signal = None
         self._last_saved_step = None
         self._steps_done = 0  # the last step this process finished (the watchdog's message)
+        self._heap_trimmed = False  # `_after_step`
         keras.utils.set_random_seed(cfg.train.seed)  # same initial weights for the same seed (reproducible runs)
         with self.strategy.scope():
             self.model = build_model(cfg, job="train")  # model.compile=auto chooses for training
@@ -136,11 +137,24 @@ class Trainer:
         state = tf.nest.map_structure(lambda v: tf.identity(v.value), self._state_variables())
         return self._step_fn(state, batch)
 
-    @tf.function
     def step(self, iterator):
         """One training step on the next batch of `iterator` (a distributed iterator of `self.strategy`); returns the
         global batch's loss. A non-finite step changes no weight, BatchNorm statistic or optimizer slot (it is
         counted in `nonfinite_total` / `nonfinite_in_row`); `global_step` counts every step."""
+        loss = self._step(iterator)
+        self._after_step()
+        return loss
+
+    def _after_step(self) -> None:
+        """After this process's first step: the memory that tracing and compiling the step freed goes back to the OS
+        (`cpu.malloc_trim`). glibc keeps it otherwise, scattered between live blocks, under every later step's
+        temporaries: the steady peak of a training job. Measured: docs/benchmarks.md, "Memory"."""
+        if not self._heap_trimmed:
+            cpu.malloc_trim()
+            self._heap_trimmed = True
+
+    @tf.function
+    def _step(self, iterator):
         result = self.strategy.run(self._replica_step, args=(next(iterator),))
         result = tf.nest.map_structure(lambda x: self.strategy.experimental_local_results(x)[0], result)
         self._assign_step_result(result)
@@ -270,6 +284,7 @@ class Trainer:
             with pairs.input_errors_named(self.train_files, self._decode_options):
                 loss, stop_by = self._step_and_stop(iterator, tf.constant(self._stop_request(), tf.float64))
                 loss_value, stop_by = float(loss.numpy()), int(round(float(stop_by.numpy())))
+            self._after_step()
         except tf.errors.OpError as e:
             if not is_peer_error(e):
                 raise
