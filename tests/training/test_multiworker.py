@@ -77,6 +77,18 @@ def _initial_weights(cfg):
     return build_model(cfg).get_weights()
 
 
+def _assert_near_reference(trained, ref, initial):
+    """Per variable, the trained weights are within a thousandth of the reference's move from `initial` of the
+    reference's. Not element by element: Adam moves a weight by about the learning rate a step whatever its gradient's
+    size, so where a gradient is near zero the all-reduce's summation order moves that weight by float noise times a
+    step (under the zen3 caps, one weight in a few thousand by over 1e-5); a worker that trained on other data, or an
+    update lost, moves them all."""
+    assert len(trained.variables) == len(ref.model.variables) == len(initial)
+    for a, b, w0 in zip(trained.variables, ref.model.variables, initial):
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        assert np.linalg.norm(a - b) <= 1e-3 * np.linalg.norm(b - w0) + 1e-6 * np.sqrt(b.size), a.path
+
+
 def test_two_workers_equal_each_other_and_the_reference(tiny_segment, tiny_config, tmp_path):
     cfg = replica_config(tiny_config)
     model_dir = str(tmp_path / "m")
@@ -88,9 +100,7 @@ def test_two_workers_equal_each_other_and_the_reference(tiny_segment, tiny_confi
     assert sorted(os.listdir(model_dir)) == ["checkpoints", "config.yaml", "train", "train_history.json"]
     assert tf.train.latest_checkpoint(os.path.join(model_dir, "checkpoints")).endswith(f"ckpt-{STEPS}")
     ref = _reference(tiny_segment, cfg, _initial_weights(cfg), STEPS)
-    trained = restore_model(cfg, model_dir)
-    for a, b in zip(trained.variables, ref.model.variables):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6, err_msg=a.path)
+    _assert_near_reference(restore_model(cfg, model_dir), ref, _initial_weights(cfg))
 
 
 @pytest.mark.slow
@@ -111,6 +121,4 @@ def test_killed_workers_resume_from_the_chiefs_checkpoint(tiny_segment, tiny_con
     fingerprints = _fingerprints(outs)
     assert fingerprints[0] == fingerprints[1]
     ref = _reference(tiny_segment, cfg, _initial_weights(cfg), 2 * STEPS)
-    trained = restore_model(cfg, model_dir)
-    for a, b in zip(trained.variables, ref.model.variables):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6, err_msg=a.path)
+    _assert_near_reference(restore_model(cfg, model_dir), ref, _initial_weights(cfg))
