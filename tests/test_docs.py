@@ -907,7 +907,8 @@ _STEP_SETTINGS = {"before": "before (TensorFlow's own start-up, `auto` = hybrid)
                   "after": "after (the tools' start-up, `auto` per job)",
                   "after_remat": "after, `model.remat_encoder=true`",
                   "after_default_arenas": "after, glibc's own malloc arenas (no `MALLOC_ARENA_MAX`)",
-                  "after_plain_convolutions": "after, the convolutions in their plain forms"}
+                  "after_plain_convolutions": "after, the convolutions in their plain forms",
+                  "after_small_pages": "after, without transparent huge pages (no `GLIBC_TUNABLES`)"}
 
 
 def _settings_table(file, settings, jobs="train"):
@@ -921,7 +922,7 @@ def _settings_table(file, settings, jobs="train"):
     return Table(
         B, Quote(B, f"`tools/benchmark_cpu_step.py --jobs {jobs} --modes auto --settings {','.join(settings)} --rounds "
                     f"{{}} --no_stages` (`benchmarks/{file}`), paper config, {{}} points, batch 1, the "
-                    "middle over the rounds (`bench.middle`: of two, the larger) of the median of {} steps after {} "
+                    "middle over the rounds (`bench.middle`: the median; of two, the larger) of the median of {} steps after {} "
                     "warm-up steps; {} ({} cores), oneDNN and XLA "
                     "capped to AVX2 (`zen3`); projected = the issue's Zen 3 figures of ff3d_tf before scaled by this "
                     "run's ratios to its own \"before\":",
@@ -985,16 +986,27 @@ CONV_FORMS_REMAT_TABLE = _settings_table("cpu_step_avx2_convolutions_remat.json"
 _CH = "cpu_step_avx2_chain.json"
 CHAIN_TABLE = _settings_table(_CH, ("before", "after"), jobs="train,forward")
 CHAIN_FORWARD_TABLE = _forward_table(_CH, ("before", "after"))
-CHAIN_STEPS_PEAK = Quote(
-    B, "After the warm-up steps, the timed steps of \"after\" alone peak at {} (the peak above is the process's, from "
-       "its start): {} projected onto the issue's Zen 3.",
-    (V(_CH, ("summary", "train/auto", "after", "steps_peak_rss_gb"), "{:.2f} GB"),
-     V(_CH, "projection_zen3/train_step_32000_steps_peak_gb", "{:.2f} GB")))
-CPU_TARGETS_TABLE = _targets_table(_CH)
+
+
+def _steps_peak(file):
+    return Quote(
+        B, "After the warm-up steps, the timed steps of \"after\" alone peak at {} (the peak above is the process's, "
+           "from its start): {} projected onto the issue's Zen 3.",
+        (V(file, ("summary", "train/auto", "after", "steps_peak_rss_gb"), "{:.2f} GB"),
+         V(file, "projection_zen3/train_step_32000_steps_peak_gb", "{:.2f} GB")))
+
+
+CHAIN_STEPS_PEAK = _steps_peak(_CH)
 CHAIN_OWN_ISA_TABLE = _own_isa_table("cpu_step_zen4_chain.json", ("after",))
+# The heap after the first step returned to the OS, and transparent huge pages (`Trainer.step`, `cpu.AVX2_STARTUP`)
+_PG = "cpu_step_avx2_pages.json"
+PAGES_TABLE = _settings_table(_PG, ("before", "after", "after_small_pages"), jobs="train,forward")
+PAGES_FORWARD_TABLE = _forward_table(_PG, ("before", "after"))
+PAGES_STEPS_PEAK = _steps_peak(_PG)
+CPU_TARGETS_TABLE = _targets_table(_PG)
 TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_OWN_ISA_TABLE, CONV_FORMS_REMAT_TABLE,
-           CHAIN_TABLE, CHAIN_FORWARD_TABLE, CPU_TARGETS_TABLE, CHAIN_OWN_ISA_TABLE)
-QUOTES += (CHAIN_STEPS_PEAK,)
+           CHAIN_TABLE, CHAIN_FORWARD_TABLE, CHAIN_OWN_ISA_TABLE, PAGES_TABLE, PAGES_FORWARD_TABLE, CPU_TARGETS_TABLE)
+QUOTES += (CHAIN_STEPS_PEAK, PAGES_STEPS_PEAK)
 
 # -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
 _HC = "head_cost_cpu.json"

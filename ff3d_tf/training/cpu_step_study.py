@@ -151,7 +151,8 @@ def train_child(config: str, overrides: list, mode: str, points: int, steps: int
     out = {**_header(mode), "points": points, "padded_points": padded, "point_programs": point_programs,
            "convolution_forms": convolution_forms,
            "malloc_arena_max": arenas, "step_ms": [r["ms"] for r in readings],
-           "step_cpu_ms": [r["cpu_ms"] for r in readings],
+           "step_cpu_ms": [r["cpu_ms"] for r in readings], "step_sys_ms": [r["sys_ms"] for r in readings],
+           "step_minor_faults": [r["minor_faults"] for r in readings],
            "peak_rss_gb": max(process_peak_gb, steps_peak_gb),
            "steps_peak_rss_gb": steps_peak_gb if peak_reset else None, "rss_after_gb": bench.proc_status("VmRSS")}
     out["step_median_ms"] = bench.middle(out["step_ms"])
@@ -502,8 +503,11 @@ def summarize(variants: Mapping) -> dict:
                                 "peak_rss_gb": bench.middle([x["peak_rss_gb"] for x in readings]),
                                 "steps_peak_rss_gb": bench.middle([x["steps_peak_rss_gb"] for x in readings])
                                 if all(x.get("steps_peak_rss_gb") for x in readings) else None,
-                                "step_cpu_median_ms": bench.middle([bench.middle(x["step_cpu_ms"]) for x in readings])
-                                if all(x.get("step_cpu_ms") for x in readings) else None,
+                                **{key: bench.middle([bench.middle(x[name]) for x in readings])
+                                   if all(x.get(name) for x in readings) else None
+                                   for key, name in (("step_cpu_median_ms", "step_cpu_ms"),
+                                                     ("step_sys_median_ms", "step_sys_ms"),
+                                                     ("step_minor_faults_median", "step_minor_faults"))},
                                 **({"stages": first["stage_summary"]} if "stage_summary" in first else {})}
             else:
                 first = readings[0]
