@@ -49,10 +49,7 @@ EMULATIONS = {
 # AVX512_BF16, AMX); without them it runs Eigen's kernels.
 TENSORFLOW_ONEDNN_FLAGS = ("avx512_vnni", "avx512_bf16", "amx_tile", "amx_bf16", "amx_int8")
 # What `startup_environment` may set, and the jobs it tells apart.
-STARTUP_KEYS = ("TF_ENABLE_ONEDNN_OPTS", "TF_CPU_ALLOCATOR_USE_BFC", "MALLOC_ARENA_MAX", "GLIBC_TUNABLES")
-# Of those, what only the C library reads, and only when a program starts: a tool that adds one runs itself again
-# with it (tools/_common.py).
-EXEC_TIME_KEYS = ("GLIBC_TUNABLES",)
+STARTUP_KEYS = ("TF_ENABLE_ONEDNN_OPTS", "TF_CPU_ALLOCATOR_USE_BFC", "MALLOC_ARENA_MAX")
 STARTUP_JOBS = ("train", "inference")
 # The start-up environment per job on an x86 CPU with AVX2 but none of TENSORFLOW_ONEDNN_FLAGS usable (AMD Zen 3,
 # Intel Haswell to Comet Lake): oneDNN off (TensorFlow's own default there; oneDNN has no bfloat16 convolutions there).
@@ -60,13 +57,9 @@ STARTUP_JOBS = ("train", "inference")
 # pages every call); to train, malloc and free as TensorFlow has them there (the pool keeps the region it grew to for
 # the training program's temporaries, a higher peak for about the same step time), from two glibc arenas instead of
 # up to eight per core: the threads' freed blocks are reused across threads rather than held in arenas of their own
-# (`limit_malloc_arenas`), and with transparent huge pages asked for the blocks glibc maps (glibc >= 2.35; the
-# kernel's "madvise" mode): the training program's temporaries, one block mapped afresh every step, fault in by 2 MB
-# rather than by 4 KB. The measurement with them ("after"): benchmarks/cpu_step_avx2.json,
-# benchmarks/cpu_step_avx2_memory.json and benchmarks/cpu_step_avx2_pages.json (tools/benchmark_cpu_step.py, both
-# libraries capped to AVX2), docs/benchmarks.md.
-AVX2_STARTUP = {"train": {"TF_ENABLE_ONEDNN_OPTS": "0", "MALLOC_ARENA_MAX": "2",
-                          "GLIBC_TUNABLES": "glibc.malloc.hugetlb=1"},
+# (`limit_malloc_arenas`). The measurement with them ("after"): benchmarks/cpu_step_avx2.json and
+# benchmarks/cpu_step_avx2_memory.json (tools/benchmark_cpu_step.py, both libraries capped to AVX2), docs/benchmarks.md.
+AVX2_STARTUP = {"train": {"TF_ENABLE_ONEDNN_OPTS": "0", "MALLOC_ARENA_MAX": "2"},
                 "inference": {"TF_ENABLE_ONEDNN_OPTS": "0", "TF_CPU_ALLOCATOR_USE_BFC": "true"}}
 
 

@@ -64,8 +64,7 @@ def test_startup_environment_per_cpu_and_job():
         assert cpu.startup_environment(job, zen4, caps) == cpu.AVX2_STARTUP[job]
         assert "TF_ENABLE_ONEDNN_OPTS" not in cpu.startup_environment(job, zen4, cpu.EMULATIONS["zen3_onednn"])
         # Whatever the user set stays theirs.
-        mine = {"TF_ENABLE_ONEDNN_OPTS": "1", "TF_CPU_ALLOCATOR_USE_BFC": "0", "MALLOC_ARENA_MAX": "8",
-                "GLIBC_TUNABLES": "glibc.malloc.check=0"}
+        mine = {"TF_ENABLE_ONEDNN_OPTS": "1", "TF_CPU_ALLOCATOR_USE_BFC": "0", "MALLOC_ARENA_MAX": "8"}
         assert cpu.startup_environment(job, zen3, mine) == {}
     # Mixed precision never meets oneDNN on an AVX2 CPU: the start-up leaves it off for every job there.
     assert all(cpu.AVX2_STARTUP[job].get("TF_ENABLE_ONEDNN_OPTS") == "0" for job in cpu.STARTUP_JOBS)
@@ -133,42 +132,3 @@ def test_limit_malloc_arenas_caps_the_arenas_threads_get():
     for bad in ("0", "x", "-1"):
         assert cpu.limit_malloc_arenas({"MALLOC_ARENA_MAX": bad}) is None
 
-
-TOOL_START = """
-import os, sys
-with open(sys.argv[2], "a") as f:
-    f.write(f"{os.getpid()}\\n")
-sys.path.insert(0, sys.argv[1])
-import _common
-with open("/proc/self/environ") as f:  # the environment the program started with: what the C library read
-    started_with = dict(e.split("=", 1) for e in f.read().split("\\0") if "=" in e)
-print(os.getpid(), started_with.get("GLIBC_TUNABLES"), sys.argv[3:])
-"""
-
-
-@pytest.mark.parametrize("name, user_tunables", [("train.py", None), ("train.py", "glibc.malloc.check=0"),
-                                                 ("predict.py", None)])
-def test_a_training_tool_runs_again_with_what_only_glibc_reads(tmp_path, name, user_tunables):
-    """On an AVX2 CPU (here: this one under the zen3 caps) a training tool's start-up adds GLIBC_TUNABLES, which glibc
-    reads only when a program starts: the tool runs itself once more, same pid and arguments, started with it. A user's
-    own GLIBC_TUNABLES, or a tool that only runs the model, starts once."""
-    import subprocess
-    import sys
-    info = cpu.read_cpuinfo()
-    if info is None or "avx2" not in info.flags:
-        pytest.skip("the start-up adds nothing without AVX2")
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    script, starts = tmp_path / name, tmp_path / "starts"
-    script.write_text(TOOL_START)
-    env = {k: v for k, v in os.environ.items() if k not in cpu.STARTUP_KEYS}
-    env.update({k: v for k, v in cpu.EMULATIONS["zen3"].items() if k != "TF_ENABLE_ONEDNN_OPTS"})
-    if user_tunables:
-        env["GLIBC_TUNABLES"] = user_tunables
-    out = subprocess.run([sys.executable, "-u", str(script), os.path.join(root, "tools"), str(starts), "--set", "a=b"],
-                         capture_output=True, text=True, timeout=60, env=env)
-    assert out.returncode == 0, out.stderr
-    pid, started_with, args = out.stdout.split(" ", 2)
-    assert args.strip() == "['--set', 'a=b']"
-    again = name == "train.py" and user_tunables is None
-    assert starts.read_text().split() == [pid] * (2 if again else 1)
-    assert started_with == (cpu.AVX2_STARTUP["train"]["GLIBC_TUNABLES"] if again else str(user_tunables))

@@ -1003,10 +1003,16 @@ _PG = "cpu_step_avx2_pages.json"
 PAGES_TABLE = _settings_table(_PG, ("before", "after", "after_small_pages"), jobs="train,forward")
 PAGES_FORWARD_TABLE = _forward_table(_PG, ("before", "after"))
 PAGES_STEPS_PEAK = _steps_peak(_PG)
+PAGES_FAULTS = Quote(
+    B, "A training step's minor page faults (the middle over the rounds of each run's median step): {} with huge pages, "
+       "{} without; the system's CPU time in the step (the kernel filling pages, mostly): {} and {}.",
+    tuple(V(_PG, ("summary", "train/auto", setting, key), fmt) for key, fmt in
+          (("step_minor_faults_median", "{:,.0f}"), ("step_sys_median_ms", "{:,.0f} ms"))
+          for setting in ("after", "after_small_pages")))
 CPU_TARGETS_TABLE = _targets_table(_PG)
 TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_OWN_ISA_TABLE, CONV_FORMS_REMAT_TABLE,
            CHAIN_TABLE, CHAIN_FORWARD_TABLE, CHAIN_OWN_ISA_TABLE, PAGES_TABLE, PAGES_FORWARD_TABLE, CPU_TARGETS_TABLE)
-QUOTES += (CHAIN_STEPS_PEAK, PAGES_STEPS_PEAK)
+QUOTES += (CHAIN_STEPS_PEAK, PAGES_STEPS_PEAK, PAGES_FAULTS)
 
 # -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
 _HC = "head_cost_cpu.json"

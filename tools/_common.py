@@ -25,19 +25,7 @@ def startup_environment(argv0: str | None = None, environ=None) -> dict:
     return _cpu.startup_environment(job, environ=environ)
 
 
-def _run_again_if_needed(added: dict) -> None:
-    """A training tool run as a program whose start-up added one of `ff3d_tf.cpu.EXEC_TIME_KEYS` runs itself again
-    (same process, same arguments) so that the C library reads it; once: the key is then in its environment."""
-    main_file = getattr(sys.modules.get("__main__"), "__file__", None) or ""
-    if any(k in added for k in _cpu.EXEC_TIME_KEYS) and os.path.basename(main_file) in TRAINING_TOOLS:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os.execv(sys.executable, [sys.executable, *sys.orig_argv[1:]])
-
-
-_added = startup_environment()
-os.environ.update(_added)
-_run_again_if_needed(_added)
+os.environ.update(startup_environment())
 _cpu.limit_malloc_arenas()  # glibc read MALLOC_ARENA_MAX at start, before the line above could set it
 
 

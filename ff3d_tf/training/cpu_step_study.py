@@ -15,8 +15,9 @@ Every reading comes from a fresh child process (`ff3d_tf.children.run_child`, pi
             "after_remat" (on request): "after" with the encoder's activations recomputed in the backward
             (`model.remat_encoder=true`);
             "after_plain_convolutions" (on request): "after" with the convolutions of "before" (what the forms save);
-            "after_default_arenas", "after_small_pages" (on request): "after" without the start-up's malloc arena
-            limit, without its transparent huge pages (not measured for a job whose start-up has neither).
+            "after_default_arenas" (on request): "after" without the start-up's malloc arena limit (not measured
+            for a job whose start-up has none);
+            "after_huge_pages" (on request, training only): "after" with glibc asked for transparent huge pages.
   job       "train" (the Trainer's own step: forward, loss, backward, Adam; batch 1, the process's peak resident
             memory) or "forward" (the compiled forward at each point count, in one process, round robin).
   mode      `model.compile`: auto, hybrid, xla, none.
@@ -47,13 +48,18 @@ SETTINGS = ("before", "after")
 # start-up's limit saves.
 # "after_plain_convolutions": "after" with `compile_lib.convolution_forms = "plain"`, what the model's convolution forms
 # save.
-# "after_small_pages": "after" with glibc's own pages for the blocks it maps (GLIBC_TUNABLES left out), what the
-# start-up's transparent huge pages save.
+# "after_huge_pages": "after" with glibc asked for transparent huge pages for the blocks it maps (HUGE_PAGES, set
+# before the child starts, as glibc reads it only then): the training program's temporaries, one block mapped afresh
+# every step, fault in by huge pages. Measured and not taken into the start-up (docs/benchmarks.md).
 ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat", "after_default_arenas", "after_plain_convolutions",
-                           "after_small_pages")
+                           "after_huge_pages")
+HUGE_PAGES = {"GLIBC_TUNABLES": "glibc.malloc.hugetlb=1"}
 # The settings that differ from "after" in the environment alone: not measured for a job whose start-up they leave as
-# "after" has it.
-ENVIRONMENT_SETTINGS = ("after_onednn", "after_default_arenas", "after_small_pages")
+# "after" has it; and the settings measured for some jobs only.
+ENVIRONMENT_SETTINGS = ("after_onednn", "after_default_arenas")
+SETTING_JOBS = {"after_huge_pages": ("train",)}
+# What the settings and the emulations set: taken out of a child's inherited environment, recorded in its reading.
+KNOBS = tuple(sorted({k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS) | set(HUGE_PAGES)))
 REMAT_OVERRIDE = "model.remat_encoder=true"
 JOBS = ("train", "forward")
 MODES = ("auto", "hybrid", "xla", "none")
@@ -83,8 +89,7 @@ def variant_environment(setting: str, job: str, cap: str, base: Mapping | None =
     set, plus the caps of `cpu.EMULATIONS[cap]`, and for "after" with TensorFlow's oneDNN setting of the emulation
     replaced by what `cpu.startup_environment` chooses for `job` on this CPU under those caps."""
     base = dict(os.environ if base is None else base)
-    knobs = {k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS)
-    env = {k: v for k, v in base.items() if k not in knobs}
+    env = {k: v for k, v in base.items() if k not in KNOBS}
     caps = dict(cpu.EMULATIONS[cap]) if cap != NO_CAP else {}
     if setting != "before":
         caps.pop("TF_ENABLE_ONEDNN_OPTS", None)
@@ -93,8 +98,8 @@ def variant_environment(setting: str, job: str, cap: str, base: Mapping | None =
         caps["TF_ENABLE_ONEDNN_OPTS"] = "1"
     if setting == "after_default_arenas":
         caps.pop("MALLOC_ARENA_MAX", None)
-    if setting == "after_small_pages":
-        caps.pop("GLIBC_TUNABLES", None)
+    if setting == "after_huge_pages":
+        caps.update(HUGE_PAGES)
     return {**env, **caps}
 
 
@@ -428,7 +433,8 @@ def study(config: str, overrides: Sequence[str], train_points: int, forward_poin
         key = f"{job}/{mode}"
         result["variants"].setdefault(key, {})
         environment = variant_environment(setting, job, cap)
-        if setting in ENVIRONMENT_SETTINGS and environment == variant_environment("after", job, cap):
+        if job not in SETTING_JOBS.get(setting, JOBS) or (
+                setting in ENVIRONMENT_SETTINGS and environment == variant_environment("after", job, cap)):
             continue
         resolved = resolved_mode(setting, mode, job, environment)
         if measured.get((job, setting, resolved), key) != key:  # "auto" and the mode it resolves to: one
@@ -455,9 +461,8 @@ def study(config: str, overrides: Sequence[str], train_points: int, forward_poin
                                          timeout_s=timeout_s, what=f"{key} {setting}", on_error="record")
         finally:
             os.environ.update(removed)
-        knobs = sorted({k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS))
         reading.update({"setting": setting, "requested_mode": mode,
-                        "environment": {k: environment.get(k) for k in knobs}})
+                        "environment": {k: environment.get(k) for k in KNOBS}})
         if job == "train" and "stages" in reading and "step_median_ms" in reading:
             reading["stage_summary"] = stage_summary(reading["stages"], reading["step_median_ms"])
         if round_ == 0:

@@ -148,7 +148,8 @@ class Trainer:
     def _after_step(self) -> None:
         """After this process's first step: the memory that tracing and compiling the step freed goes back to the OS
         (`cpu.malloc_trim`). glibc keeps it otherwise, scattered between live blocks, under every later step's
-        temporaries: the steady peak of a training job. Measured: docs/benchmarks.md, "Memory"."""
+        temporaries: the steady peak of a training job. Measured: docs/benchmarks.md, "The heap after compilation and
+        huge pages"."""
         if not self._heap_trimmed:
             cpu.malloc_trim()
             self._heap_trimmed = True

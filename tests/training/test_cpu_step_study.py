@@ -60,21 +60,18 @@ def test_the_child_limits_malloc_arenas_as_a_tool_does(monkeypatch):
     assert not any("MALLOC_ARENA_MAX" in env for _, env in calls)
 
 
-def test_the_training_child_starts_with_huge_pages_as_a_tool_does(monkeypatch):
-    """GLIBC_TUNABLES of the training start-up reaches the child at exec, as a training tool runs itself again with it
-    (tools/_common.py); "after_small_pages" leaves it out, and is not measured for the forward, whose start-up has
-    none."""
-    caps = {k: v for k, v in cpu.EMULATIONS["zen3"].items() if k != "TF_ENABLE_ONEDNN_OPTS"}
-    expected = cpu.startup_environment("train", environ=caps)["GLIBC_TUNABLES"]
-    assert "GLIBC_TUNABLES" not in cpu.startup_environment("inference", environ=caps)
+def test_huge_pages_reach_the_training_child_at_exec(monkeypatch):
+    """"after_huge_pages" gives the training child GLIBC_TUNABLES in the environment it starts with (glibc reads it
+    only then); "after" has none, and the forward is not measured with it."""
     calls = []
     monkeypatch.setattr(study.children, "run_child", lambda fn, kwargs, env, **kw: calls.append((fn, env)) or {
         "mode": kwargs["mode"], "onednn_enabled": False, "step_median_ms": 1.0, "peak_rss_gb": 1.0,
         "median_ms": {"100": 1.0}})
-    study.study("", [], 100, [100], ["xla"], ["train", "forward"], ["after", "after_small_pages"], "zen3", 1, 0, 1,
+    study.study("", [], 100, [100], ["xla"], ["train", "forward"], ["after", "after_huge_pages"], "zen3", 1, 0, 1,
                 False, 1, 1, log_fn=lambda line: None)
+    tunables = study.HUGE_PAGES["GLIBC_TUNABLES"]
     assert [(fn.split(":")[1], env.get("GLIBC_TUNABLES")) for fn, env in calls] == [
-        ("train_child", expected), ("train_child", None), ("forward_child", None)]
+        ("train_child", None), ("train_child", tunables), ("forward_child", None)]
 
 
 def test_resolved_mode_per_setting_and_job():
