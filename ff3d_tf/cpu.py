@@ -153,18 +153,25 @@ def tensorflow_onednn_default(info: CpuInfo, environ=None) -> bool:
     return any(f in usable_flags(info, environ) for f in TENSORFLOW_ONEDNN_FLAGS)
 
 
+def _glibc():
+    """The C library as ctypes has it, or None where it is not glibc's libc.so.6."""
+    import ctypes
+    try:
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
+        return None
+
+
 def limit_malloc_arenas(environ=None) -> int | None:
     """Applies `environ`'s (default os.environ) MALLOC_ARENA_MAX to this process with glibc's mallopt(M_ARENA_MAX):
     glibc reads the variable only when a process starts, so a tool that sets it in its own environment
     (`startup_environment`, tools/_common.py) applies it this way, before TensorFlow starts its threads. Returns the
     limit applied; None when the variable is unset, not a positive integer, or libc is not glibc."""
-    import ctypes
     value = (os.environ if environ is None else environ).get("MALLOC_ARENA_MAX", "")
     if not value.isdigit() or int(value) < 1:
         return None
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
+    libc = _glibc()
+    if libc is None:
         return None
     m_arena_max = -8  # glibc's malloc.h
     return int(value) if hasattr(libc, "mallopt") and libc.mallopt(m_arena_max, int(value)) == 1 else None
@@ -173,12 +180,8 @@ def limit_malloc_arenas(environ=None) -> int | None:
 def malloc_trim() -> bool:
     """Returns the memory glibc's malloc holds free to the OS (malloc_trim(0): the top of every arena and the free
     pages inside them); False where libc is not glibc."""
-    import ctypes
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    if not hasattr(libc, "malloc_trim"):
+    libc = _glibc()
+    if libc is None or not hasattr(libc, "malloc_trim"):
         return False
     libc.malloc_trim(0)
     return True

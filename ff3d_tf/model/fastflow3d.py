@@ -220,8 +220,7 @@ class FastFlow3D(keras.Model):
         by the chain itself), a fraction of the three convolutions' arithmetic. Training on TensorFlow's own kernels
         (modes hybrid and none) keeps U5 and U6 as they are: the shifted sums' gradients, op by op, cost more there
         than the convolutions they replace; so does bfloat16, whose oneDNN convolutions the float32 product would
-        replace. (With `compile.convolution_forms` "plain", row V and
-        then the head's grid part.)"""
+        replace. (With `compile.convolution_forms` "plain", row V and then the head's grid part.)"""
         if self.head == "gru":
             return self.dense_stages(bev_features, training)
         k_grid = self.head_y.composed_with(self.head_z)[0]
