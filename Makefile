@@ -40,6 +40,26 @@ test: install
 test-slow: install
 	$(PY) -m pytest -q -m slow tests
 
+# CI's further legs (.ci/run). test-zen3: the numerically sensitive test files (optimiser and training steps, the
+# trainer, replicas and workers, XLA against TensorFlow, the plan against the table, NSFP) again under the zen3 caps,
+# so a failure that only an AVX2 CPU shows is seen on any machine. test-distributed: the tests marked slow that guard
+# distributed training's equivalence to one model (replicas, workers, resumes).
+SENSITIVE_TESTS = tests/model/test_step.py tests/model/test_plan.py tests/model/test_compile.py \
+	tests/model/test_conv_forms.py tests/model/test_precision.py tests/model/test_remat.py \
+	tests/training/test_trainer.py tests/training/test_distributed.py tests/training/test_multiworker.py \
+	tests/training/test_gru_head_training.py tests/training/test_xla_step.py tests/inference/test_xla_export.py \
+	tests/labels/test_nsfp.py
+DISTRIBUTED_TESTS = tests/training/test_distributed.py tests/training/test_multiworker.py \
+	tests/training/test_gru_head_training.py
+ZEN3_ENV = env $$($(PY) -c "from ff3d_tf import cpu; print(cpu.emulation_env('zen3'))")
+
+.PHONY: test-zen3 test-distributed
+test-zen3: install
+	$(ZEN3_ENV) $(PY) -m pytest -q -m "not slow" -n $(TEST_WORKERS) --dist loadfile $(SENSITIVE_TESTS)
+
+test-distributed: install
+	$(PY) -m pytest -q -m slow -n $(TEST_WORKERS) --dist loadfile $(DISTRIBUTED_TESTS)
+
 # MODEL=gru: the demo with DeFlow's GRU head (tools/demo.py --model gru) instead of the paper's.
 MODEL ?= paper
 DEMO_OUT ?= demo_out

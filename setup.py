@@ -19,7 +19,7 @@ setup(
     extras_require={
         "beam": ["apache-beam[tfrecord]==2.77.0"],
         "dev": ["pytest>=8", "pytest-xdist==3.8.0"],  # make test runs test files on 2 processes
-        # Portable XLA export (tools/export_xla.py) and its TensorFlow-free runner (tools/run_xla.py). jax 0.10.2 is
+        # Portable XLA export (tools/export_xla.py) and its TensorFlow-free runner (lab/tools/run_xla.py). jax 0.10.2 is
         # the newest that supports Python 3.11 and resolves against the TF 2.21 pins; a runner machine may have a
         # newer jax (artifacts stay loadable for 6 months of jaxlib releases, docs/deployment.md).
         "xla": ["jax==0.10.2", "jaxlib==0.10.2", "flatbuffers>=24.3.25"],

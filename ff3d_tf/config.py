@@ -144,6 +144,7 @@ class DataConfig:
 
 COMPILE_MODES = ("auto", "xla", "hybrid", "none")  # model.compile
 HEADS = ("paper", "gru")  # model.head
+FORWARDS = ("fused", "table")  # model.forward
 LOSSES = ("l2", "deflow", "deltaflow")  # train.loss
 
 
@@ -164,6 +165,10 @@ class ModelConfig:
     # Training recomputes the encoder stages' activations (rows C-R) in the backward pass from each stage's input
     # instead of holding them: less memory at the step's peak (docs/training.md, benchmarks/cpu_step_avx2_memory.json).
     remat_encoder: bool = False
+    # fused = the forward in the cheaper forms the execution plan chooses for the job and device
+    # (`ff3d_tf.model.plan`); table = every row as the paper's table lists it, one call per row (reading, debugging).
+    # Both compute the same values up to float rounding.
+    forward: str = "fused"
     # Zeros for row Z's kernel (the model starts at the zero-flow prediction) instead of the paper's Glorot init:
     # sum-pooled dense pillars through the linear decoder otherwise start at outputs of tens of m/s.
     zero_init_output: bool = False
@@ -202,6 +207,8 @@ class ModelConfig:
             raise ConfigError(f"model.compile={self.compile!r}: one of {', '.join(COMPILE_MODES)}")
         if self.head not in HEADS:
             raise ConfigError(f"model.head={self.head!r}: one of {', '.join(HEADS)}")
+        if self.forward not in FORWARDS:
+            raise ConfigError(f"model.forward={self.forward!r}: one of {', '.join(FORWARDS)}")
         if not (isinstance(self.gru_iterations, int) and not isinstance(self.gru_iterations, bool)
                 and 0 <= self.gru_iterations <= MAX_GRU_ITERATIONS):
             raise ConfigError(f"model.gru_iterations={self.gru_iterations!r}: an integer in [0, {MAX_GRU_ITERATIONS}]")

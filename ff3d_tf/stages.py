@@ -34,7 +34,7 @@ import sys
 import time
 from typing import Callable, Sequence
 
-from ff3d_tf import bench
+from ff3d_tf.json_io import write_json
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CODE_PATTERNS = ("ff3d_tf/**/*.py", "tools/*.py", "configs/*.yaml")
@@ -153,7 +153,7 @@ class Stages:
                 if os.path.lexists(path):
                     self.log(f"=== {head}: removing {path} (written by another command or code)")
                     _remove(path)
-        bench.write_json(self._path(name, ".started"), key)
+        write_json(self._path(name, ".started"), key)
         self.log(f"\n=== {head} ({self._progress(name, include_this=True)}): {' '.join(args)}")
         t = time.time()
         returncode = self._call([sys.executable, *args])
@@ -167,7 +167,7 @@ class Stages:
         missing = [p for p in outputs if not os.path.exists(p)]
         if missing:
             raise StageError(f"stage {name} finished without writing {missing}")
-        bench.write_json(self._path(name), {**key, "outputs": {p: listing(p) for p in outputs},
+        write_json(self._path(name), {**key, "outputs": {p: listing(p) for p in outputs},
                                        "seconds": self.seconds[name]})
         self.log(f"=== {head} done in {self.seconds[name]:.0f} s ({self._progress(name, include_this=False)})")
         return True

@@ -23,22 +23,25 @@ Precisions: `float32` (every convolution and matmul at HIGHEST precision: float3
 (DEFAULT precision: XLA may use TF32 on Ampere and later), `bfloat16` (the model's mixed_bfloat16 compute, float32
 weights and point coordinates).
 
-Here: the format (reading, checking, the benchmark inputs), the run that times every artifact kind of a directory on
-the default JAX device (`run_export`, each kind an `ArtifactTiming` of its pipeline) and, for the exporters, the
-model's flat arguments and the directory's weights, manifest and reference. Like `ff3d_tf.xla_program`, importing
-it imports neither TensorFlow nor JAX (each function imports what it needs): the TensorFlow-free runners use it.
+Here: the format (reading, checking), the made-up inputs of the reference (`random_clouds`, `random_labels`: two
+clouds of N points uniform over the grid, so every point falls in a pillar, features uniform in [0, 1], padded with
+zeros to P points and masked; flow labels uniform in [-10, 10] m/s and classes uniform in -1..4 on the real points,
+zero flow and class -1 (no label) on the padding) and, for the exporters, the model's flat arguments and the
+directory's weights, manifest and reference. Like `ff3d_tf.xla_program`, importing it imports neither TensorFlow nor
+JAX (each function imports what it needs): the TensorFlow-free runners use it. The runs that time a directory's
+artifacts are the lab's (`lab.xla_export_timing`).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import os
-import time
-from typing import Protocol, Sequence
+from typing import Sequence
 
 import numpy as np
 
-from ff3d_tf import bench, xla_program
+from ff3d_tf import xla_program
+from ff3d_tf.schema import CLASS_NAMES, CLASS_NO_LABEL, MODEL_INPUT_KEYS
 from ff3d_tf.xla_program import ExportFormatError  # noqa: F401  (this module's callers catch it from here)
 
 FORMAT = "ff3d_tf.xla_forward/1"
@@ -79,11 +82,11 @@ def load_artifact(export_dir: str, entry: dict, num_in: int, num_out: int, expec
 
 
 def random_inputs(manifest: dict, entry: dict, rng: np.random.Generator) -> list[np.ndarray]:
-    """`bench.random_clouds` of `entry["points"]` points over the manifest's grid, padded to the artifact's size, in
+    """`random_clouds` of `entry["points"]` points over the manifest's grid, padded to the artifact's size, in
     argument order (`manifest["input_keys"]`)."""
     g = manifest["grid"]
-    clouds = bench.random_clouds(rng, entry["points"], entry["padded_points"],
-                                 (g["x_range_m"], g["y_range_m"], g["z_range_m"]), entry["batch_size"])
+    clouds = random_clouds(rng, entry["points"], entry["padded_points"],
+                           (g["x_range_m"], g["y_range_m"], g["z_range_m"]), entry["batch_size"])
     return [clouds[k] for k in manifest["input_keys"]]
 
 
@@ -93,96 +96,36 @@ def load_reference(export_dir: str):
     return dict(np.load(path)) if os.path.exists(path) else None
 
 
-# -- the timing run -------------------------------------------------------------------------------------------------
-@dataclasses.dataclass
-class ExportRun:
-    """What every artifact timing of one run reads: the directory, its manifest, weights and reference (None when it
-    has none), and the run's random generator (the benchmark inputs, drawn in manifest order)."""
-    export_dir: str
-    manifest: dict
-    weights: list
-    reference: dict | None
-    rng: np.random.Generator
+# -- made-up input: the reference's clouds and labels (also the lab's benchmark cloud) ---------------------------------
+def random_clouds(rng: np.random.Generator, points: int, padded_points: int, bounds: Sequence[Sequence[float]],
+                  batch_size: int = 1) -> dict[str, np.ndarray]:
+    """The model's inputs for `batch_size` pairs of made-up clouds (t0, then t-1 in the t0 frame) of `points`
+    points, padded to `padded_points`: `MODEL_INPUT_KEYS` in order, xyz float32 [B,P,3], features float32 [B,P,2],
+    mask bool [B,P]. `bounds`: the grid's ((x_min, x_max), (y_min, y_max), (z_min, z_max)), metres."""
+    if not 0 < points <= padded_points:
+        raise ValueError(f"points={points}: need 0 < points <= padded_points={padded_points}")
+    b, n, p = batch_size, points, padded_points
+    arrays = []
+    for _ in range(2):
+        xyz = np.zeros((b, p, 3), np.float32)
+        xyz[:, :n] = np.stack([rng.uniform(lo, hi, (b, n)) for lo, hi in bounds], -1)
+        features = np.zeros((b, p, 2), np.float32)
+        features[:, :n] = rng.uniform(0.0, 1.0, (b, n, 2))
+        mask = np.zeros((b, p), bool)
+        mask[:, :n] = True
+        arrays += [xyz, features, mask]
+    return dict(zip(MODEL_INPUT_KEYS, arrays))
 
 
-class ArtifactTiming(Protocol):
-    """One kind of artifact as `run_export` times it (the forward: `ff3d_tf.inference.xla_timing.ForwardTiming`; the
-    training step: `ff3d_tf.training.xla_step_runner.TrainStepTiming`)."""
-    kind: str  # a skipped row's "kind"
-    manifest_key: str  # the manifest's list of this kind's entries
-    result_key: str  # the result's list of this kind's rows
-
-    def time(self, run: ExportRun, entry: dict) -> dict:
-        """The row of one entry: its timing and "reference" (the check against TensorFlow's results, or None)."""
-
-    def describe(self, row: dict) -> str:
-        """The log line of a row."""
-
-    def table(self, result: dict) -> list[str]:
-        """The Markdown lines of this kind's rows (none when the run has none)."""
-
-    def check_name(self, row: dict) -> str:
-        """What a row's reference check is called in the table."""
-
-
-def run_export(export_dir: str, timings: Sequence[ArtifactTiming], precisions=None, points=None,
-               budget_s: float | None = None, seed: int = 0, log=print, on_row=None) -> dict:
-    """Times the artifacts of an export directory, kind by kind in the order of `timings` (optionally only some
-    precisions / point counts), each with its reference check.
-
-    Artifacts still untimed when `budget_s` seconds have passed are listed as skipped (a GPU check must end in time).
-    `on_row(result)` is called after each timed artifact with the result so far (e.g. to save partial results).
-    """
-    import jax
-    start = time.perf_counter()
-    manifest = read_manifest(export_dir)
-    weights = load_weights(export_dir, manifest)
-    device = jax.devices()[0]
-    result = {"export_dir": export_dir, "jax": jax.__version__, "platform": device.platform,
-              "device": getattr(device, "device_kind", str(device)), "num_weights": len(weights),
-              "exported_with": manifest.get("exported_with", {}), **{t.result_key: [] for t in timings},
-              "skipped": []}
-    run = ExportRun(export_dir, manifest, weights, load_reference(export_dir), np.random.default_rng(seed))
-
-    def wanted(entry, kind):
-        if (precisions and entry["precision"] not in precisions) or (points and entry["points"] not in points):
-            return False
-        if budget_s is not None and time.perf_counter() - start > budget_s:
-            result["skipped"].append({"kind": kind, "points": entry["points"], "precision": entry["precision"],
-                                      "batch_size": entry["batch_size"],
-                                      "reason": f"time budget of {budget_s:.0f} s spent"})
-            return False
-        return True
-
-    for timing in timings:
-        for entry in manifest.get(timing.manifest_key, []):
-            if not wanted(entry, timing.kind):
-                continue
-            row = timing.time(run, entry)
-            result[timing.result_key].append(row)
-            if on_row is not None:
-                on_row(result)
-            log(timing.describe(row))
-    result["total_s"] = time.perf_counter() - start
-    return result
-
-
-def describe_check(check: dict | None) -> str:
-    """"; vs TensorFlow: " and a reference check's differences, or "" without one."""
-    return "" if check is None else "; vs TensorFlow: " + ", ".join(f"{k} {v:.3g}" for k, v in check.items())
-
-
-def results_table(result: dict, timings: Sequence[ArtifactTiming]) -> str:
-    """Markdown tables of a `run_export` result, one per kind of `timings`, then the reference checks of every row."""
-    lines, checks = [], []
-    for timing in timings:
-        lines += timing.table(result)
-        checks += [(timing.check_name(row), row.get("reference")) for row in result.get(timing.result_key, [])]
-    checks = [(name, check) for name, check in checks if check]
-    if checks:
-        lines += ["", "Against TensorFlow's results on the reference inputs (export machine, CPU, float32):", ""]
-        lines += [f"- {name}:{describe_check(check).split(':', 1)[1]}" for name, check in checks]
-    return "\n".join(lines)
+def random_labels(rng: np.random.Generator, points: int, padded_points: int, batch_size: int = 1) -> dict:
+    """Labels of `random_clouds`' t0 clouds: flow_mps_t0 float32 [B,P,3] uniform in [-10, 10] m/s and class_id_t0
+    int32 [B,P] uniform in -1..4 on the real points; zero flow and class -1 (no label) on the padding."""
+    b, n, p = batch_size, points, padded_points
+    flow = np.zeros((b, p, 3), np.float32)
+    flow[:, :n] = rng.uniform(-10.0, 10.0, (b, n, 3))
+    class_id = np.full((b, p), CLASS_NO_LABEL, np.int32)
+    class_id[:, :n] = rng.integers(CLASS_NO_LABEL, max(CLASS_NAMES) + 1, (b, n))
+    return {"flow_mps_t0": flow, "class_id_t0": class_id}
 
 
 # -- writing (TensorFlow side) --------------------------------------------------------------------------------------
@@ -200,7 +143,6 @@ def model_weights(model) -> list:
 def input_specs(batch_size: int, padded_points: int) -> list:
     """The six model inputs of one bucket as `tf.TensorSpec`s, in `MODEL_INPUT_KEYS` order (`ff3d_tf.schema`)."""
     import tensorflow as tf
-    from ff3d_tf.schema import MODEL_INPUT_KEYS
     b, p = batch_size, padded_points
     shapes = {"points_xyz_t0": ([b, p, 3], tf.float32), "point_features_t0": ([b, p, 2], tf.float32),
               "point_mask_t0": ([b, p], tf.bool), "points_xyz_tm1_in_t0": ([b, p, 3], tf.float32),
@@ -227,7 +169,6 @@ def new_export(cfg, model, out_dir: str, platforms: Sequence[str], weights_sourc
     returns its manifest, no artifact in it yet (write it with `write_manifest` once they are added)."""
     import jax
     import tensorflow as tf
-    from ff3d_tf.schema import MODEL_INPUT_KEYS
     os.makedirs(out_dir, exist_ok=True)
     if os.path.exists(os.path.join(out_dir, REFERENCE_NAME)):
         os.remove(os.path.join(out_dir, REFERENCE_NAME))

@@ -1,5 +1,5 @@
 """Runs a script in a subprocess where TensorFlow and Keras cannot be imported: the JAX-only runners of the portable
-XLA programs (`tools/run_xla.py`, `tools/run_nsfp_xla.py`) must work on a machine without them."""
+XLA programs (`lab/tools/run_xla.py`, `lab/tools/run_nsfp_xla.py`) must work on a machine without them."""
 import subprocess
 import sys
 

@@ -74,23 +74,6 @@ def test_startup_environment_per_cpu_and_job():
         cpu.startup_environment("serve", zen3, {})
 
 
-def test_tools_apply_the_startup_environment_per_job(monkeypatch):
-    monkeypatch.syspath_prepend(os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "tools"))
-    for key in cpu.STARTUP_KEYS:  # importing _common applies its start-up to os.environ: undone after the test
-        if key in os.environ:
-            monkeypatch.setenv(key, os.environ[key])
-        else:  # recorded as unset, then removed again
-            monkeypatch.setenv(key, "")
-            monkeypatch.delenv(key)
-    import _common
-    zen3_caps = {k: v for k, v in cpu.EMULATIONS["zen3"].items() if k != "TF_ENABLE_ONEDNN_OPTS"}
-    info = cpu.read_cpuinfo()
-    if info is None or "avx2" not in info.flags:
-        return  # the start-up changes nothing without AVX2
-    for tool, job in (("tools/train.py", "train"), ("tools/predict.py", "inference"), ("eval.py", "inference")):
-        assert _common.startup_environment(tool, zen3_caps) == cpu.startup_environment(job, info, zen3_caps)
-
-
 ARENA_COUNT = """
 import ctypes, sys, threading
 sys.path.insert(0, sys.argv[1])

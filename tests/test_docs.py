@@ -2,9 +2,10 @@
 
 - every relative link of README.md, data/README.md and docs/*.md leads to a file (and a heading, for `#anchor`);
 - every repository path they name in code (`tools/train.py`, `configs/...yaml`, `benchmarks/...json`, ...) exists;
-- every `ff3d_tf.module.name` (and `module.NAME` of a module whose file name is unique) is defined, read with `ast`
-  (nothing is imported); every config key (`train.peer_timeout_s`) is a field of the config's dataclasses;
-- every tool in tools/ is named somewhere;
+- every `ff3d_tf.module.name` or `lab.module.name` (and `module.NAME` of a module whose file name is unique) is
+  defined, read with `ast` (nothing is imported); every config key (`train.peer_timeout_s`) is a field of the config's
+  dataclasses;
+- every tool in tools/ and lab/tools/ is named somewhere;
 - every measured figure is its JSON's: the tables of docs/benchmarks.md are rendered here from benchmarks/*.json
   (`TABLES`) and must appear in the doc exactly as rendered, each figure quoted in prose is formatted from its JSON
   (`QUOTES`), docs/benchmarks.md holds no other table and no other number with a unit; the walk through one training
@@ -29,7 +30,8 @@ import pytest
 ROOT = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))  # the checkout, also under Bazel
 DOCS_PAGES = ("architecture", "bazel", "benchmarks", "datasets", "deployment", "label_free", "training")
 BENCHMARKS_DOC = "docs/benchmarks.md"
-REPO_DIRS = ("ff3d_tf", "tools", "configs", "benchmarks", "tests", "bazel", "data", "docs", "third_party")
+REPO_DIRS = ("ff3d_tf", "lab", "tools", "configs", "benchmarks", "tests", "bazel", "data", "docs", "third_party")
+PACKAGES = ("ff3d_tf", "lab")  # the Python packages whose modules and names the docs may name
 
 
 def doc_files() -> list[str]:
@@ -159,7 +161,7 @@ def module_tree(rel: str) -> ast.Module:
 
 
 def module_file(dotted: str) -> str | None:
-    """ff3d_tf.a.b -> ff3d_tf/a/b.py or ff3d_tf/a/b/__init__.py, None if neither exists."""
+    """ff3d_tf.a.b -> ff3d_tf/a/b.py or ff3d_tf/a/b/__init__.py (lab.a.b likewise), None if neither exists."""
     base = dotted.replace(".", "/")
     for rel in (base + ".py", base + "/__init__.py"):
         if os.path.isfile(os.path.join(ROOT, rel)):
@@ -168,7 +170,7 @@ def module_file(dotted: str) -> str | None:
 
 
 def symbol_problem(dotted: str) -> str | None:
-    """None if `ff3d_tf.module[.name[.member]]` exists, else what is missing."""
+    """None if `ff3d_tf.module[.name[.member]]` (or `lab.module...`) exists, else what is missing."""
     parts = dotted.split(".")
     for cut in range(len(parts), 0, -1):
         rel = module_file(".".join(parts[:cut]))
@@ -192,9 +194,10 @@ def symbol_problem(dotted: str) -> str | None:
 
 @functools.cache
 def unique_module_basenames() -> dict[str, str]:
-    """{file name without .py: dotted module} for the ff3d_tf modules whose file name no other module shares."""
+    """{file name without .py: dotted module} for the ff3d_tf and lab modules whose file name no other module shares."""
     seen: dict[str, list[str]] = {}
-    for path in glob.glob(os.path.join(ROOT, "ff3d_tf", "**", "*.py"), recursive=True):
+    for path in [p for package in PACKAGES for p in glob.glob(os.path.join(ROOT, package, "**", "*.py"),
+                                                                recursive=True)]:
         rel = os.path.relpath(path, ROOT)
         if not rel.endswith("__init__.py"):
             seen.setdefault(os.path.basename(rel)[:-3], []).append(rel[:-3].replace("/", "."))
@@ -215,7 +218,7 @@ def config_fields() -> dict[str, set[str]]:
     return sections
 
 
-FULL_SYMBOL = re.compile(r"(?<![\w./])(ff3d_tf(?:\.[A-Za-z_]\w*)+)")
+FULL_SYMBOL = re.compile(r"(?<![\w./])((?:ff3d_tf|lab)(?:\.[A-Za-z_]\w*)+)")
 FILE_SUFFIXES = {"py", "json", "csv", "yaml", "md", "txt", "onnx", "npz", "npy", "rrd", "zip", "feather", "pcd", "ply",
                  "bin", "sh", "png", "bzl", "tfrecord", "jaxexport", "partial"}
 SHORT_SYMBOL = re.compile(r"(?<![\w./=-])([a-z_][a-z0-9_]*)\.([A-Za-z_]\w*)(?![\w/]|\.\w)")
@@ -260,7 +263,7 @@ def test_named_symbols_and_config_keys_exist(doc):
 
 def test_every_tool_is_documented():
     text = "\n".join(read(d) for d in doc_files())
-    tools = [f"tools/{n}" for n in sorted(os.listdir(os.path.join(ROOT, "tools")))
+    tools = [f"{d}/{n}" for d in ("tools", "lab/tools") for n in sorted(os.listdir(os.path.join(ROOT, d)))
              if n.endswith((".py", ".sh")) and not n.startswith("_")]
     assert [t for t in tools if t not in text] == []
 
@@ -269,7 +272,7 @@ def test_every_tool_is_documented():
 
 @functools.cache
 def source(name: str):
-    """A benchmarks/*.json file by name, or the literal constants of a Python file (`ff3d_tf/...py`)."""
+    """A benchmarks/*.json file by name, or the literal constants of a Python file (`ff3d_tf/...py`, `lab/...py`)."""
     if name.endswith(".py"):
         return {k: ast.literal_eval(v.value) for k, v in _top_level_names(module_tree(name).body).items()
                 if isinstance(v, ast.Assign) and _is_literal(v.value)}
@@ -411,8 +414,8 @@ def _bf16_cell(file, points):
 
 
 BF16_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_bf16.py`, paper config, compile mode hybrid, medians of {} calls, {} cores of each "
-                "CPU:", (V(_AMD, "latency/latency/32000/auto/float32/runs"), V(_AMD, "cpu/cpu_count"))),
+    B, Quote(B, "`lab/tools/benchmark_bf16.py`, paper config, compile mode hybrid, medians of {} calls, {} cores of "
+                "each CPU:", (V(_AMD, "latency/latency/32000/auto/float32/runs"), V(_AMD, "cpu/cpu_count"))),
     ("CPU (its bfloat16 flags)", "`auto` picks", "inference, 32,000 points", "inference, 1,000,000 points",
      "training step, 32,000 points: speed-up", "file"), "llrrrl",
     tuple((_cpu_name(f), V(f, "cpu/auto_resolves_to"), _bf16_cell(f, 32000), _bf16_cell(f, 1000000),
@@ -422,7 +425,7 @@ BF16_TABLE = Table(
 # -- memory between calls (profile_memory.py)
 _MEM = "memory_cpu.json"
 MEMORY_TABLE = Table(
-    B, Quote(B, "`tools/profile_memory.py`, paper config, {} points, batch 1, resident memory (GB) of a process "
+    B, Quote(B, "`lab/tools/profile_memory.py`, paper config, {} points, batch 1, resident memory (GB) of a process "
                 "on a {}-core VM; CPU time relative to the default:",
              (V(_MEM, "points", "{:,}"), V(_MEM, "cpu_count"))),
     ("allocator", "between training steps", "between inference calls", "CPU time per step",
@@ -440,7 +443,7 @@ MEMORY_TABLE = Table(
 # -- ONNX (benchmark_onnx.py)
 _ONNX = "onnx_cpu.json"
 ONNX_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_onnx.py`, paper config, random weights, {} points, medians of {} calls, "
+    B, Quote(B, "`lab/tools/benchmark_onnx.py`, paper config, random weights, {} points, medians of {} calls, "
                 "onnxruntime {} with {} threads, a {}-core VM:",
              (V(_ONNX, "points", "{:,}"), V(_ONNX, "runs"), V(_ONNX, "versions/onnxruntime"),
               V(_ONNX, "onnxruntime_intra_op_threads"), V(_ONNX, "cpu_count"))),
@@ -455,7 +458,7 @@ ONNX_TABLE = Table(
 
 # -- portable XLA on an H200 (run_xla.py via gpu_check.sh)
 _GPU = "xla_latency_gpu.json"
-_P100 = "ff3d_tf/inference/xla_timing.py"
+_P100 = "lab/inference/xla_timing.py"
 
 
 def _gpu_ms(points, precision):
@@ -468,7 +471,7 @@ def _speedup(points, precision):
 
 
 GPU_FORWARD_TABLE = Table(
-    B, Quote(B, "`tools/gpu_check.sh` on an {} (jax {}), random weights, medians of {} forward passes after {} "
+    B, Quote(B, "`lab/tools/gpu_check.sh` on an {} (jax {}), random weights, medians of {} forward passes after {} "
                 "warm-up, clouds on the device:",
              (V(_GPU, "device"), V(_GPU, "jax"), V(_GPU, "latency[points=32000,precision=tf32]/runs"),
               V(_GPU, "latency[points=32000,precision=tf32]/warmup"))),
@@ -500,7 +503,7 @@ def _rate(density, key):
 
 
 INPUT_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_input.py`, the trainer's whole input (read, pair, shuffle, batch, pad), pairs/s "
+    B, Quote(B, "`lab/tools/benchmark_input.py`, the trainer's whole input (read, pair, shuffle, batch, pad), pairs/s "
                 "on 1 core of a {}-core VM; synthetic WOD segments at WOD's density ({} points a frame) and at "
                 "the synthetic default's ({}):",
              (V(_IN, "cpus_available"), V(_IN, "densities/wod/sizes/points_per_frame", "{:,}"),
@@ -516,7 +519,7 @@ def _av2_rate(key):
 
 
 AV2_INPUT_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_input.py --av2`, synthetic Argoverse 2 logs at {} points a sweep, pairs/s on 1 "
+    B, Quote(B, "`lab/tools/benchmark_input.py --av2`, synthetic Argoverse 2 logs at {} points a sweep, pairs/s on 1 "
                 "core of a {}-core VM:", (V(_IN, "av2/points_per_sweep", "{:,}"), V(_IN, "av2/cpus_available"))),
     ("step", "pairs/s"), "lr",
     (("labels made in the input pipeline (no records)", _av2_rate("labels_in_pipeline")),
@@ -526,7 +529,7 @@ AV2_INPUT_TABLE = Table(
 
 _TR = "training_cpu.json"
 TRAINING_INPUT_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_training.py`, paper config, batch 1, synthetic WOD segments at full size "
+    B, Quote(B, "`lab/tools/benchmark_training.py`, paper config, batch 1, synthetic WOD segments at full size "
                 "({} points a cloud), a {}-core VM:",
              (V(_TR, "input[cores=1]/mean_points_t0", "{:,.0f}"), V(_TR, "cpus_available"))),
     ("measurement", "result"), "lr",
@@ -553,7 +556,7 @@ SIZING_TABLE = Table(
 # -- NSFP speed (benchmark_nsfp.py)
 _NSFP = "nsfp_cpu.json"
 NSFP_SPEED_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_nsfp.py`, the job's fit (`nsfp.MEASURED_FIT_OPTIONS`), {} points a cloud, "
+    B, Quote(B, "`lab/tools/benchmark_nsfp.py`, the job's fit (`nsfp.MEASURED_FIT_OPTIONS`), {} points a cloud, "
                 "{} ({} cores):", (V(_NSFP, "speed/points", "{:,}"), V(_NSFP, "machine/model_name"),
                                    V(_NSFP, "machine/cpu_count"))),
     ("Chamfer distances by", "seconds per Adam step", "grids of both clouds"), "lrr",
@@ -571,7 +574,7 @@ def _av2_score(who, key, fmt):
 
 
 NSFP_QUALITY_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_nsfp.py` on `data/av2_sample_log` (one real pair): `tools/write_pair_records.py "
+    B, Quote(B, "`lab/tools/benchmark_nsfp.py` on `data/av2_sample_log` (one real pair): `tools/write_pair_records.py "
                 "--source av2`, then `tools/pseudo_label.py` with its defaults, whose own scores by the challenge's "
                 "arithmetic are these ({} points scored; {}, {} cores):",
              (V(_NSFP, f"{_AV2S}/evaluated_points", "{:,}"), V(_NSFP, "machine/model_name"),
@@ -595,7 +598,7 @@ def _verdict(key, who, fmt="{:.2f}"):
 
 
 DISTILLATION_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_distillation.py`, synthetic WOD at lidar scale {} ({} training and {} held-out "
+    B, Quote(B, "`lab/tools/benchmark_distillation.py`, synthetic WOD at lidar scale {} ({} training and {} held-out "
                 "segments), `{}`, {} training steps, NSFP capped at {} steps; error on the held-out pairs against "
                 "their human labels, a {}-core VM:",
              (V(_DI, "options/lidar_scale"), V(_DI, "options/train_segments"), V(_DI, "options/eval_segments"),
@@ -624,8 +627,8 @@ def _soak(mode, kind, key, fmt="{}"):
 
 
 SOAK_TABLE = Table(
-    B, Quote(B, "`tools/soak_train.py`, two trainers on loopback (tiny model), a 2-core VM; {} faults over {} steps "
-                "without the service, {} over {} with it:",
+    B, Quote(B, "`lab/tools/soak_train.py`, two trainers on loopback (tiny model), a 2-core VM; {} faults over {} "
+                "steps without the service, {} over {} with it:",
              (V(_SOAK, "plain/faults_injected"), V(_SOAK, "plain/final_step"), V(_SOAK, "service/faults_injected"),
               V(_SOAK, "service/final_step"))),
     ("run", "fault", "count", "detected, median / max", "resumed, median / max", "steps lost, max"), "llrrrr",
@@ -645,7 +648,7 @@ def _dnn(cap, onednn, key):
 
 
 ONEDNN_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_onednn.py`, `{}`, {} points, batch 1, medians over {} rounds, {} ({} cores):",
+    B, Quote(B, "`lab/tools/benchmark_onednn.py`, `{}`, {} points, batch 1, medians over {} rounds, {} ({} cores):",
              (V(_DNN, "config"), V(_DNN, "points", "{:,}"), V(_DNN, "rounds"), V(_DNN, "cpu/model_name"),
               V(_DNN, "cpu/cpu_count"))),
     ("ISA", "oneDNN", "training step", "forward"), "llrr",
@@ -823,9 +826,9 @@ def _cs_na(path, fmt):
 _CS_WHERE = Quote(B, "{} ({} cores), oneDNN and XLA capped to AVX2 (`ff3d_tf.cpu.EMULATIONS`, `zen3`: as on an AMD "
                      "Zen 3)", (V(_CS, "cpu/model_name"), V(_CS, "cpu/cpu_count")))
 CPU_STEP_TABLE = Table(
-    B, Quote(B, "`tools/benchmark_cpu_step.py`, paper config, {} points, batch 1, median of {} training steps after {} "
-                "warm-up steps (wall time, and CPU time of all threads), peak = the process's peak resident memory; "
-                "{}:", (V(_CS, "train_points", "{:,}"), V(_CS, "steps"), V(_CS, "warmup"), _CS_WHERE)),
+    B, Quote(B, "`lab/tools/benchmark_cpu_step.py`, paper config, {} points, batch 1, median of {} training steps "
+                "after {} warm-up steps (wall time, and CPU time of all threads), peak = the process's peak resident "
+                "memory; {}:", (V(_CS, "train_points", "{:,}"), V(_CS, "steps"), V(_CS, "warmup"), _CS_WHERE)),
     ("`model.compile`", "before: runs", "before: step", "before: CPU", "before: peak", "after: runs", "after: step",
      "after: CPU", "after: peak"), "llrrrlrrr",
     tuple((f"`{m}`", *(cell for setting in ("before", "after") for cell in (
@@ -920,8 +923,8 @@ def _settings_table(file, settings, jobs="train"):
         return V(file, ("projection_zen3",) + (() if setting == "after" else (setting,)) + (key,), fmt)
 
     return Table(
-        B, Quote(B, f"`tools/benchmark_cpu_step.py --jobs {jobs} --modes auto --settings {','.join(settings)} --rounds "
-                    f"{{}} --no_stages` (`benchmarks/{file}`), paper config, {{}} points, batch 1, the "
+        B, Quote(B, f"`lab/tools/benchmark_cpu_step.py --jobs {jobs} --modes auto --settings {','.join(settings)} "
+                    f"--rounds {{}} --no_stages` (`benchmarks/{file}`), paper config, {{}} points, batch 1, the "
                     "middle over the rounds (`bench.middle`: the median; of two, the larger) of the median of {} steps after {} "
                     "warm-up steps; {} ({} cores), oneDNN and XLA "
                     "capped to AVX2 (`zen3`); projected = the issue's Zen 3 figures of ff3d_tf before scaled by this "
@@ -966,7 +969,7 @@ CONV_FORMS_FORWARD_TABLE = _forward_table(_CF, ("before", "after", "after_plain_
 def _own_isa_table(file, settings):
     """The training step and the forward of each of `settings` in `file`, a study run with the CPU's own kernels."""
     return Table(
-        B, Quote(B, f"`tools/benchmark_cpu_step.py --cap none --jobs train,forward --modes auto --settings "
+        B, Quote(B, f"`lab/tools/benchmark_cpu_step.py --cap none --jobs train,forward --modes auto --settings "
                     f"{','.join(settings)} --rounds {{}} --no_stages` (`benchmarks/{file}`), the same figures on {{}} "
                     "({} cores, family/model {}) with its own kernels (TensorFlow's oneDNN operations on, AVX-512):",
                  (V(file, "rounds"), V(file, "cpu/model_name"), V(file, "cpu/cpu_count"),
@@ -1014,7 +1017,7 @@ TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_
            CHAIN_TABLE, CHAIN_FORWARD_TABLE, CHAIN_OWN_ISA_TABLE, PAGES_TABLE, PAGES_FORWARD_TABLE, CPU_TARGETS_TABLE)
 QUOTES += (CHAIN_STEPS_PEAK, PAGES_STEPS_PEAK, PAGES_FAULTS)
 
-# -- the GRU head's cost beside the paper head (tools/benchmark_head_cost.py); the note is generated from the figures
+# -- the GRU head's cost beside the paper head (lab/tools/benchmark_head_cost.py); the note comes from the figures
 _HC = "head_cost_cpu.json"
 QUOTES += (
     Quote("docs/training.md", "On {} ({} cores, family/model {}; paper config, `model.compile=auto` -> {}, batch 1, "
@@ -1097,10 +1100,13 @@ def test_benchmarks_doc_has_no_other_figure():
 
 STEP_FUNCTIONS = (  # (file, function or Class.method): from the command line to the optimizer's update
     ("tools/train.py", "main"),
+    ("tools/_common.py", "start"),
     ("ff3d_tf/training/trainer.py", "Trainer.__init__"),
+    ("ff3d_tf/model/fastflow3d.py", "build_model"),
+    ("ff3d_tf/model/plan.py", "resolve"),
     ("ff3d_tf/training/trainer.py", "Trainer.train"),
     ("ff3d_tf/training/trainer.py", "Trainer._input_iterator"),
-    ("ff3d_tf/training/trainer.py", "training_dataset"),
+    ("ff3d_tf/training/input.py", "training_dataset"),
     ("ff3d_tf/training/trainer.py", "Trainer._run_step"),
     ("ff3d_tf/training/trainer.py", "Trainer.step"),
     ("ff3d_tf/training/trainer.py", "Trainer._step"),
@@ -1110,7 +1116,19 @@ STEP_FUNCTIONS = (  # (file, function or Class.method): from the command line to
     ("ff3d_tf/model/step.py", "train_step_fn"),
     ("ff3d_tf/model/step.py", "loss_and_grads_fn"),
     ("ff3d_tf/model/forward.py", "model_inputs"),
+    # the forward: the fused forward of the plan, stage by stage, and the layers that shape it
     ("ff3d_tf/model/fastflow3d.py", "FastFlow3D.call"),
+    ("ff3d_tf/model/fastflow3d.py", "FastFlow3D.fused_forward"),
+    ("ff3d_tf/model/fastflow3d.py", "FastFlow3D.encode_points"),
+    ("ff3d_tf/model/layers.py", "PointEncoder.call"),
+    ("ff3d_tf/model/layers.py", "PointEncoder._encode_and_scatter"),
+    ("ff3d_tf/model/ops.py", "chunked_segment_sum"),
+    ("ff3d_tf/model/fastflow3d.py", "FastFlow3D.grid_stages"),
+    ("ff3d_tf/model/fastflow3d.py", "FastFlow3D.unet"),
+    ("ff3d_tf/model/layers.py", "ConvBlock.forward"),
+    ("ff3d_tf/model/layers.py", "UpsampleSkip.into_next"),
+    ("ff3d_tf/model/ops.py", "conv_chain_same"),
+    ("ff3d_tf/model/fastflow3d.py", "FastFlow3D.decode_points"),
     ("ff3d_tf/model/losses.py", "batch_flow_loss"),
     ("ff3d_tf/model/losses.py", "per_sample_training_loss"),
     ("ff3d_tf/model/losses.py", "per_sample_flow_loss"),
@@ -1124,10 +1142,13 @@ STEP_FUNCTIONS = (  # (file, function or Class.method): from the command line to
 
 
 def function_lines(rel: str, qualname: str) -> int:
+    """Lines of the definition of `qualname` in `rel`: a function or a class's method defined there (a name the
+    module imports or assigns is not counted as its function)."""
     scope, node = _top_level_names(module_tree(rel).body), None
     for name in qualname.split("."):
         node = scope[name]
         scope = _top_level_names(node.body) if isinstance(node, ast.ClassDef) else {}
+    assert isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)), f"{rel}: {qualname} is not defined there"
     return node.end_lineno - node.lineno + 1
 
 

@@ -43,12 +43,14 @@ def test_av2_sample_is_in_tree_with_its_notice():
     assert len(os.listdir(os.path.join(log, "sensors", "lidar"))) == 2
 
 
-# --- Floors: foundations at the bottom, three sibling pipelines above them, tools on top ---------------------------
+# --- Floors: foundations at the bottom, three sibling pipelines above them, tools on top; the lab beside them ---------
 # A module of ff3d_tf imports only modules of its own floor or lower; the pipelines never import one another (each
 # stands on the foundations alone); nothing in ff3d_tf imports a tool, and no tool imports another tool (`_common`,
-# the tools' shared flag parsing, is not a tool). Every import counts, function-local ones included.
+# the tools' shared flag parsing, is not a tool). The lab (lab/: studies, benchmarks, profilers and their tools in
+# lab/tools/) may import any of ff3d_tf and `_common`, but neither ff3d_tf nor a tool of tools/ imports the lab: the
+# installed package never needs it. Every import counts, function-local ones included.
 FOUNDATION_RANKS = {  # within the foundation floor: a module imports ranks <= its own
-    "schema": 0, "cpu": 0, "internals": 0, "parallel": 0, "bench": 0, "children": 0, "geometry": 0, "xla_program": 0, "stages": 0,
+    "schema": 0, "cpu": 0, "internals": 0, "parallel": 0, "json_io": 0, "geometry": 0, "xla_program": 0, "stages": 0,
     "predictor": 0,
     "config": 1,
     "data": 2, "model": 2, "metrics": 2, "metrics_av2": 2, "viz": 2, "viz3d": 2, "xla_export_dir": 2,
@@ -81,10 +83,15 @@ def _imports(path: str, package: str) -> list[tuple[int, str]]:
 
 
 def _floor(module: str) -> tuple[str, str] | None:
-    """("foundation" | "pipeline" | "tool", the top-level part) of a first-party module name, None otherwise."""
+    """("foundation" | "pipeline" | "tool" | "lab" | "lab tool", the top-level part) of a first-party module name,
+    None otherwise."""
     parts = module.split(".")
     if parts[0] == "tools" and len(parts) > 1:
         return "tool", parts[1]
+    if parts[:2] == ["lab", "tools"] and len(parts) > 2:
+        return "lab tool", parts[2]
+    if parts[0] == "lab":
+        return "lab", parts[1] if len(parts) > 1 else ""
     if parts[0] != "ff3d_tf":
         return None
     if len(parts) == 1:
@@ -92,22 +99,34 @@ def _floor(module: str) -> tuple[str, str] | None:
     return ("pipeline", parts[1]) if parts[1] in PIPELINES else ("foundation", parts[1])
 
 
-def layering_violations(root: str) -> list[str]:
-    """Every import under `root`/ff3d_tf and `root`/tools that breaks the floors, as "file:line: a -> b (why)".
+def _module_names(folder: str) -> set[str]:
+    return {n[:-3] for n in os.listdir(folder) if n.endswith(".py")} if os.path.isdir(folder) else set()
 
-    Tools run with tools/ on sys.path, so a bare `import benchmark_latency` in a tool is the tool tools.benchmark_latency.
+
+def layering_violations(root: str) -> list[str]:
+    """Every import under `root`/ff3d_tf, `root`/tools and `root`/lab that breaks the floors, as "file:line: a -> b
+    (why)".
+
+    Tools run with tools/ on sys.path, so a bare `import train` in a tool is the tool tools.train; a lab tool runs with
+    its own folder and tools/ on sys.path (a bare `import run_xla` there is lab.tools.run_xla, `import _common` is
+    tools._common).
     """
-    tool_names = {n[:-3] for n in os.listdir(os.path.join(root, "tools")) if n.endswith(".py")}
+    tool_names = _module_names(os.path.join(root, "tools"))
+    lab_tool_names = _module_names(os.path.join(root, "lab", "tools"))
     out = []
-    for top in ("ff3d_tf", "tools"):
+    for top in ("ff3d_tf", "tools", "lab"):
         for dirpath, _, names in os.walk(os.path.join(root, top)):
             for name in sorted(n for n in names if n.endswith(".py")):
                 path = os.path.join(dirpath, name)
                 rel = os.path.relpath(path, root)
                 module = rel[:-3].replace(os.sep, ".").removesuffix(".__init__")
                 package = module if name == "__init__.py" else module.rpartition(".")[0]
+                in_lab_tools = package == "lab.tools"
                 for line, target in _imports(path, package):
-                    if top == "tools" and target.split(".")[0] in tool_names:
+                    first = target.split(".")[0]
+                    if in_lab_tools and first in lab_tool_names:
+                        target = f"lab.tools.{target}"
+                    elif (top == "tools" or in_lab_tools) and first in tool_names:
                         target = f"tools.{target}"
                     if why := _why_not(module, target):
                         out.append(f"{rel}:{line}: {why}")
@@ -128,9 +147,14 @@ def _why_not(module: str, target: str) -> str | None:
         return None
     (floor, part), (target_floor, target_part) = here, there
     arrow = f"{module} -> {target}"
+    lab = ("lab", "lab tool")
+    if target_floor == "lab tool":
+        return f"{arrow} (imports a tool)"
+    if target_floor == "lab":
+        return None if floor in lab else f"{arrow} ({'a tool' if floor == 'tool' else 'the product'} imports the lab)"
     if target_floor == "tool":
-        return None if floor == "tool" and target_part in TOOL_HELPERS else f"{arrow} (imports a tool)"
-    if floor == "tool":
+        return None if floor in ("tool",) + lab and target_part in TOOL_HELPERS else f"{arrow} (imports a tool)"
+    if floor in ("tool",) + lab:
         return None
     if floor == "pipeline":
         return f"{arrow} (pipelines are siblings: none imports another)" if target_floor == "pipeline" else None
@@ -145,6 +169,8 @@ def test_every_module_has_a_floor():
     parts = {n[:-3] if n.endswith(".py") else n for n in os.listdir(os.path.join(ROOT, "ff3d_tf"))
              if n.endswith(".py") or os.path.isdir(os.path.join(ROOT, "ff3d_tf", n))} - {"__init__", "__pycache__"}
     assert parts - set(PIPELINES) - set(FOUNDATION_RANKS) == set(), "give each new module a floor here"
+    gone = (set(PIPELINES) | set(FOUNDATION_RANKS)) - parts
+    assert gone == set(), f"floors of modules that are gone (remove them here): {gone}"
 
 
 def test_the_floors_hold():
@@ -180,6 +206,13 @@ def test_the_layering_check_finds_each_kind_of_arrow(tmp_path):
         "ff3d_tf/data/wod/waymo.py": "from ff3d_tf.data import pairs\n",  # a room -> shared: fine
         "ff3d_tf/data/av2/argoverse2.py": "from ff3d_tf.data.wod.waymo import x\n",
         "ff3d_tf/data/synthetic/av2.py": "from ff3d_tf.data.av2 import argoverse2\n",  # writes that format: fine
+        "ff3d_tf/stages.py": "import json\n\n\ndef f():\n    from lab import bench\n",  # the product -> the lab
+        "tools/d.py": "import lab.bench\n",  # a tool -> the lab
+        "lab/__init__.py": "",
+        "lab/bench.py": "from ff3d_tf.schema import x\n",  # the lab -> the product: fine
+        "lab/training/study.py": "from lab import bench\nfrom ff3d_tf.training import trainer\nfrom tools import a\n",
+        "lab/tools/t.py": "import _common\nfrom lab.training import study\n",  # _common is tools/_common.py: fine
+        "lab/tools/u.py": "import t\n",  # lab/tools/ is on sys.path: `t` is lab/tools/t.py
     })
     found = layering_violations(root)
     assert found == sorted([
@@ -193,4 +226,44 @@ def test_the_layering_check_finds_each_kind_of_arrow(tmp_path):
         "tools/c.py:2: tools.c -> tools.a.helper (imports a tool)",
         "ff3d_tf/data/av2/argoverse2.py:1: ff3d_tf.data.av2.argoverse2 -> ff3d_tf.data.wod.waymo.x (dataset rooms are "
         "siblings: none imports another)",
+        "ff3d_tf/stages.py:5: ff3d_tf.stages -> lab.bench (the product imports the lab)",
+        "tools/d.py:1: tools.d -> lab.bench (a tool imports the lab)",
+        "lab/training/study.py:3: lab.training.study -> tools.a (imports a tool)",
+        "lab/tools/u.py:1: lab.tools.u -> lab.tools.t (imports a tool)",
     ]), found
+
+
+# --- The model holds no state of its own: what it computes is its config and its execution plan --------------------
+# A module of ff3d_tf/model/ binds at its top level only constants (UPPER_CASE), private names (a logger, helpers),
+# functions and classes, and has no `global` statement: no module variable that a study, a test or a tool could
+# assign to change the arithmetic of every model in the process (`ff3d_tf.model.plan` is how).
+
+
+def module_state(path: str) -> list[str]:
+    """"line: name" of each top-level binding of a lowercase public name, and each `global` statement, in `path`."""
+    import ast
+    with open(path, encoding="utf-8") as f:
+        tree = ast.parse(f.read(), path)
+    found = []
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else (
+            [node.target] if isinstance(node, (ast.AnnAssign, ast.AugAssign)) else [])
+        for target in targets:
+            for name in ast.walk(target):
+                if isinstance(name, ast.Name) and not (name.id.isupper() or name.id.startswith("_")):
+                    found.append(f"{node.lineno}: {name.id}")
+    found += [f"{n.lineno}: global {', '.join(n.names)}" for n in ast.walk(tree) if isinstance(n, ast.Global)]
+    return found
+
+
+def test_module_state_is_found(tmp_path):
+    path = tmp_path / "m.py"
+    path.write_text("FORMS = ('a',)\n_LOG = None\nforms = 'fast'\n\ndef f():\n    global _x\n")
+    assert module_state(str(path)) == ["3: forms", "6: global _x"]
+
+
+def test_the_model_holds_no_module_state():
+    folder = os.path.join(ROOT, "ff3d_tf", "model")
+    found = {name: module_state(os.path.join(folder, name)) for name in sorted(os.listdir(folder))
+             if name.endswith(".py")}
+    assert {name: state for name, state in found.items() if state} == {}

@@ -8,25 +8,32 @@ import os
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 from ff3d_tf import cpu as _cpu  # noqa: E402  (the standard library only: TensorFlow is not imported yet)
 
-# The tools that train FastFlow3D in their own process: the "train" job of `ff3d_tf.cpu.startup_environment`; every
-# other tool runs the model forward (or no model at all): "inference".
-TRAINING_TOOLS = ("train.py", "run_study.py", "benchmark_training.py")
+JOBS = _cpu.STARTUP_JOBS  # "train": FastFlow3D trains in this process; "inference": it runs forward, or no model
 
 
-def startup_environment(argv0: str | None = None, environ=None) -> dict:
-    """What this tool adds to its environment before TensorFlow is imported (read once, when TensorFlow starts):
-    `ff3d_tf.cpu.startup_environment` for its job (`TRAINING_TOOLS`), on this machine's CPU; the user's own settings
-    are kept. docs/deployment.md ("Serving on a CPU") says what each CPU gets."""
-    job = "train" if os.path.basename(argv0 or sys.argv[0]) in TRAINING_TOOLS else "inference"
-    return _cpu.startup_environment(job, environ=environ)
+class StartupError(RuntimeError):
+    """`start` came after TensorFlow was imported: the start-up's settings would not take effect."""
 
 
-os.environ.update(startup_environment())
-_cpu.limit_malloc_arenas()  # glibc read MALLOC_ARENA_MAX at start, before the line above could set it
+def start(job: str) -> dict:
+    """A tool's start-up, the first call of its `main()`, before anything imports TensorFlow: the environment of
+    `ff3d_tf.cpu.startup_environment` for `job` (one of `JOBS`) on this machine's CPU (docs/deployment.md, "Serving on
+    a CPU"; the user's own settings are kept), glibc's arena limit, and TensorFlow's C++ log level (warnings and
+    errors). Returns what it added to os.environ. A tool imports the ff3d_tf modules that import
+    TensorFlow inside `main()`, after this call (`tests/tools/test_startup.py` checks every tool)."""
+    if job not in JOBS:
+        raise ValueError(f"start-up job {job!r}: one of {', '.join(JOBS)}")
+    if "tensorflow" in sys.modules:
+        raise StartupError(f"start({job!r}) after TensorFlow was imported: its settings would not take effect; a tool "
+                           f"imports ff3d_tf's TensorFlow modules inside main(), after the start-up")
+    added = _cpu.startup_environment(job)
+    os.environ.update(added)
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+    _cpu.limit_malloc_arenas()  # glibc read MALLOC_ARENA_MAX at start, before the line above could set it
+    return added
 
 
 # The flags by which a tool names a model_dir, a checkpoint prefix or a SavedModel directory: a tool given one of them
@@ -107,14 +114,17 @@ def _load_config(path: str | None, overrides):
 
 def run(main) -> None:
     """Calls a tool's `main`; a bad input the project names (a damaged checkpoint, a bad record, an unusable
-    config) ends the tool with that message and exit status 1 instead of a traceback."""
-    from ff3d_tf.config import ConfigError
-    from ff3d_tf.data.wod_errors import FrameDecodeError
-    from ff3d_tf.checkpoints import CheckpointError
+    config) ends the tool with that message and exit status 1 instead of a traceback. (The error classes are imported
+    after `main` raised: before it, no TensorFlow module may be imported, `start`.)"""
     try:
         main()
-    except (CheckpointError, FrameDecodeError, ConfigError) as e:
-        sys.exit(f"error: {e}")
+    except Exception as e:
+        from ff3d_tf.checkpoints import CheckpointError
+        from ff3d_tf.config import ConfigError
+        from ff3d_tf.data.wod_errors import FrameDecodeError
+        if isinstance(e, (CheckpointError, FrameDecodeError, ConfigError)):
+            sys.exit(f"error: {e}")
+        raise
 
 
 def int_list(p: argparse.ArgumentParser, value: str, flag: str) -> list[int]:
@@ -130,6 +140,6 @@ def json_saver(path: str | None):
     call it after every measured entry, so that a run stopped from outside keeps what it measured."""
     def save(result) -> None:
         if path:
-            from ff3d_tf import bench
-            bench.write_json(path, result)
+            from ff3d_tf.json_io import write_json
+            write_json(path, result)
     return save

@@ -12,11 +12,11 @@ import time
 
 import _common  # noqa: F401
 
-from ff3d_tf.labels.pipeline import decode_options, run_pipeline
-from ff3d_tf.data.pairs import list_segment_files
-
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.labels.pipeline import decode_options, run_pipeline
+    from ff3d_tf.data.pairs import list_segment_files
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--input", required=True, help="directory or glob of WOD segment TFRecords with laser_labels")
     p.add_argument("--out_dir", required=True)

@@ -26,11 +26,6 @@ import _common
 
 import numpy as np
 
-from ff3d_tf.data import pair_records
-from ff3d_tf.data.av2 import av2_submission
-from ff3d_tf.data.pairs import list_segment_files
-from ff3d_tf.training.evaluation import write_av2_submission
-
 
 class _LabelsAsPrediction:
     """A predictor whose flow is the example's own label (`--ground_truth`)."""
@@ -41,6 +36,11 @@ class _LabelsAsPrediction:
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.data.av2 import av2_submission
+    from ff3d_tf.data import pair_records
+    from ff3d_tf.data.pairs import list_segment_files
+    from ff3d_tf.training.evaluation import write_av2_submission
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--data_dir", required=True, help="Argoverse 2 pair records of the split")
     src = p.add_mutually_exclusive_group(required=True)

@@ -2,12 +2,12 @@
 
     python tools/check_bazel_targets.py                   # exit 1, listing every missing or outdated entry
     python tools/check_bazel_targets.py --print-missing   # also print the BUILD stanzas to paste
-    python tools/check_bazel_targets.py --fix             # rewrite the BUILD files of ff3d_tf/, tools/, tests/
-                                                          # and bazel/targets/
+    python tools/check_bazel_targets.py --fix             # rewrite the BUILD files of ff3d_tf/, lab/, tools/,
+                                                          # tests/ and bazel/targets/
 
 What it expects is derived from the sources (bazel/targets/expected.py says what): a `py_library` per module of
-ff3d_tf/ and bazel/targets/, a `py_binary` per tool, a `pytest_test` per test file, each with the deps its imports
-need and the data the files it names need. The BUILD files are read as data, never run (bazel/targets/build_files.py
+ff3d_tf/, lab/ and bazel/targets/, a `py_binary` per tool (tools/, lab/tools/), a `pytest_test` per test file, each
+with the deps its imports need and the data the files it names need. The BUILD files are read as data, never run (bazel/targets/build_files.py
 says which shapes it accepts; anything else is reported with its file and line). Targets whose source file is gone are
 reported too. The library is bazel/targets/; this file is its command line.
 """
@@ -31,8 +31,8 @@ def main(argv=None) -> int:
     p.add_argument("--root", default=ROOT, help="checkout to check (default: this one)")
     p.add_argument("--print-missing", action="store_true", help="print the BUILD stanzas that would fix the problems")
     p.add_argument("--fix", action="store_true",
-                   help="rewrite the BUILD files of ff3d_tf/, tools/, tests/, bazel/targets/ to match the tree (keeps "
-                        "comments at the top and attributes it does not derive, such as timeout or tags)")
+                   help="rewrite the BUILD files of ff3d_tf/, lab/, tools/, tests/, bazel/targets/ to match the tree "
+                        "(keeps comments at the top and attributes it does not derive, such as timeout or tags)")
     args = p.parse_args(argv)
     root = os.path.abspath(args.root)
     problems, missing, wrong = check(root)

@@ -16,10 +16,10 @@ import time
 
 import _common  # noqa: F401  (sets up the import path and TF logging)
 
-from ff3d_tf.training.data_service import start_dispatcher, start_worker
-
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.training.data_service import start_dispatcher, start_worker
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     role = p.add_mutually_exclusive_group(required=True)
     role.add_argument("--dispatcher", action="store_true", help="run the dispatcher")

@@ -10,12 +10,13 @@ import time
 import _common  # noqa: F401
 
 from ff3d_tf import viz
-from ff3d_tf.data.wod import waymo
-from ff3d_tf.data.pairs import list_segment_files
 from ff3d_tf.data.stats import FlowStats
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.data.wod import waymo
+    from ff3d_tf.data.pairs import list_segment_files
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--data_dir", required=True)
     p.add_argument("--out_dir", default=None)

@@ -22,9 +22,10 @@ import shutil
 import sys
 import time
 
-import _common  # noqa: F401  (the repository on sys.path)
+import _common
 
-from ff3d_tf import bench, cpu
+from ff3d_tf import cpu
+from ff3d_tf.json_io import write_json
 from ff3d_tf.stages import StageError, Stages
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -72,6 +73,7 @@ def _run_stages(args, stages: Stages) -> None:
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--out_dir", default="demo_out")
     p.add_argument("--config", default="configs/synthetic_cpu.yaml")
@@ -101,7 +103,7 @@ def main():
         z = json.load(f)
     moving, moving_zero = m["all/moving/mean_l2_mps"], z["all/moving/mean_l2_mps"]
     ratio = moving / moving_zero if moving_zero else float("nan")
-    bench.write_json(f"{out}/demo_summary.json", {
+    write_json(f"{out}/demo_summary.json", {
         "cpu": cpu.describe(), "model": args.model, "config": args.config, "set": args.set,
         "seconds": seconds, "stage_seconds": stages.seconds, "skipped": stages.skipped,
         "moving_mean_l2_mps": moving, "zero_flow_moving_mean_l2_mps": moving_zero, "moving_over_zero_flow": ratio,

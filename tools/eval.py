@@ -19,15 +19,13 @@ import sys
 
 import _common
 
-from ff3d_tf import metrics as M
-from ff3d_tf.data.pairs import list_segment_files
-from ff3d_tf.inference.predictor import load_predictor
-from ff3d_tf import metrics_av2
-from ff3d_tf.data.av2.av2_submission import SubmissionFormatError
-from ff3d_tf.training.evaluation import evaluate, evaluate_av2, write_results
-
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf import metrics as M
+    from ff3d_tf.data.pairs import list_segment_files
+    from ff3d_tf.inference.predictor import load_predictor
+    from ff3d_tf.training.evaluation import evaluate, write_results
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--data_dir", required=True)
     p.add_argument("--checkpoint", help="model_dir, checkpoint prefix, SavedModel directory, .onnx "
@@ -69,6 +67,10 @@ def main():
 
 
 def _av2(cfg, files, predictor, max_pairs, out_dir, masks):
+    from ff3d_tf import metrics as M
+    from ff3d_tf import metrics_av2
+    from ff3d_tf.data.av2.av2_submission import SubmissionFormatError
+    from ff3d_tf.training.evaluation import evaluate_av2
     try:
         r = evaluate_av2(cfg, files, predictor, max_pairs=max_pairs, log_fn=lambda s: print(s, flush=True),
                          masks=masks)

@@ -3,11 +3,11 @@ import os
 
 import _common
 
-from ff3d_tf.inference.saved_model import export_saved_model
-from ff3d_tf.checkpoints import restore_model
-
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.inference.saved_model import export_saved_model
+    from ff3d_tf.checkpoints import restore_model
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--checkpoint", required=True)
     p.add_argument("--out", required=True)

@@ -1,31 +1,30 @@
 """Export NSFP's per-pair optimiser (distance grids and Adam steps of ff3d_tf.labels.nsfp) as portable XLA programs,
-one set per point bucket, for CPU and CUDA; optionally time them here against TensorFlow's own.
+one set per point bucket, for CPU and CUDA.
 
 python tools/export_nsfp_xla.py --out DIR [--points 64000,150000] [--segment_steps 50] [--precisions float32,tf32]
     [--reference_calls 1 --reference_points 64000] [--crop_m 35] [--hidden_layers 8 --hidden_units 128]
-    [--compare_out J [--compare_rounds 2]]
 The pairs are synthetic (ff3d_tf.labels.nsfp_program.synthetic_pair: uniform clouds in the crop box, a box moving by a
 known motion) and regenerated from a seed by the runner, so only programs and initial parameters are written.
 The fit is the pseudo-label job's (`nsfp.MEASURED_FIT_OPTIONS`: two-sided Chamfer, --reverse_every 5). --points are
 the points a fit sees: that job fits every 4th point (`fit_every`) and evaluates the MLP at all, so a pair of 150K
 points is the 37,500-point entry.
 --reference_calls N also saves TensorFlow's grids and fit after N segments on one pair, which the runner compares
-with the device's. --compare_out times, in this process, the exported float32 programs with JAX on this machine's
-CPU against TensorFlow's fit and grid build on the first entry's pair (JSON). Needs the `xla` extra; run the result
-where only JAX is installed with `python tools/run_nsfp_xla.py DIR`.
+with the device's. Needs the `xla` extra; time the result where only JAX is installed with
+`python lab/tools/run_nsfp_xla.py DIR`, or on this machine's CPU against TensorFlow's own fit with
+`python lab/tools/benchmark_nsfp_xla_cpu.py DIR`.
 """
 import dataclasses
-import json
 import os
 
 import _common
 
 from ff3d_tf.labels import nsfp_program
-from ff3d_tf.labels.nsfp import MEASURED_FIT_OPTIONS
-from ff3d_tf.labels.nsfp_export import compare_on_this_machine, export_nsfp
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.labels.nsfp import MEASURED_FIT_OPTIONS
+    from ff3d_tf.labels.nsfp_export import export_nsfp
     p = _common.parser(__doc__)
     p.add_argument("--out", required=True)
     p.add_argument("--points", default="64000,150000", help="cloud sizes (both clouds of a pair), comma-separated")
@@ -41,8 +40,6 @@ def main():
     p.add_argument("--reverse_every", type=int, default=MEASURED_FIT_OPTIONS.reverse_every,
                    help="two-sided Chamfer's correspondences found every k steps (0: one-sided)")
     p.add_argument("--seed", type=int, default=0, help="MLP initialisation")
-    p.add_argument("--compare_out", default=None, help="JSON of JAX-vs-TensorFlow seconds per step on this CPU")
-    p.add_argument("--compare_rounds", type=int, default=2)
     args = p.parse_args()
     try:
         points = [int(v) for v in args.points.split(",") if v]
@@ -56,12 +53,6 @@ def main():
         p.error(str(e))
     size = sum(os.path.getsize(os.path.join(args.out, n)) for n in os.listdir(args.out))
     print(f"wrote {len(manifest['entries'])} NSFP entries to {args.out} ({size / 2 ** 20:.1f} MiB)")
-    if args.compare_out:
-        result = compare_on_this_machine(args.out, options, rounds=args.compare_rounds)
-        os.makedirs(os.path.dirname(os.path.abspath(args.compare_out)), exist_ok=True)
-        with open(args.compare_out, "w") as f:
-            json.dump({"options": manifest["options"], "exported_with": manifest["exported_with"], **result}, f,
-                      indent=1)
 
 
 if __name__ == "__main__":

@@ -11,11 +11,11 @@ import json
 
 import _common
 
-from ff3d_tf.checkpoints import restore_model
-from ff3d_tf.inference import onnx_export
-
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.checkpoints import restore_model
+    from ff3d_tf.inference import onnx_export
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--checkpoint", required=True, help="model_dir or checkpoint prefix")
     p.add_argument("--out", required=True, help="the .onnx file to write")

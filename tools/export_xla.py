@@ -5,18 +5,19 @@ python tools/export_xla.py --config C [--checkpoint M] --points 32000,100000 --o
     [--train_points 177000 --train_batch_sizes 1,8 --train_precisions tf32,bfloat16] [--reference]
 Without --checkpoint the weights are the model's random initialisation (enough for latency). --reference also saves
 TensorFlow's results on fixed inputs, which the runner compares with the device's. Needs the `xla` extra
-(`pip install .[xla]`); run the result where only JAX is installed with `python tools/run_xla.py DIR`.
+(`pip install .[xla]`); run the result where only JAX is installed with `python lab/tools/run_xla.py DIR`.
 """
 import os
 
 import _common
 
 from ff3d_tf import xla_export_dir
-from ff3d_tf.inference.xla_export import PLATFORMS, export_forward
-from ff3d_tf.training.xla_step_export import export_train_steps
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.inference.xla_export import PLATFORMS, export_forward
+    from ff3d_tf.training.xla_step_export import export_train_steps
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--checkpoint", default=None, help="checkpoint prefix or model_dir (default: random weights)")
     p.add_argument("--points", default="32000,100000,255000,1000000", help="cloud sizes, comma-separated")
@@ -28,8 +29,8 @@ def main():
     p.add_argument("--train_batch_sizes", default="1", help="batch sizes of the training-step artifacts")
     p.add_argument("--train_precisions", default=None, help="default: --precisions")
     p.add_argument("--reference", action="store_true", help="save TensorFlow's results for the runner to compare")
-    p.add_argument("--variants", default="", help="other programs of the forward for tools/profile_xla.py to compare "
-                   "(comma-separated; each one of fold_bn, one_chunk or several joined with '+')")
+    p.add_argument("--variants", default="", help="other programs of the forward for lab/tools/profile_xla.py to "
+                   "compare (comma-separated; each one of fold_bn, one_chunk or several joined with '+')")
     p.add_argument("--variant_points", default="", help="the variants' cloud sizes (default: --points)")
     p.add_argument("--variant_precisions", default="", help="the variants' precisions (default: --precisions)")
     p.add_argument("--out", required=True)

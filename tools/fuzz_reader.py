@@ -21,15 +21,16 @@ import time
 import _common  # noqa: F401
 
 from ff3d_tf.config import load_config
-from ff3d_tf.data.synthetic import wod as synthetic
-from ff3d_tf.data.wod import waymo
-from ff3d_tf.fuzz import av2 as av2_fuzz, config as config_fuzz, files as files_fuzz, wod as wod_fuzz
 from ff3d_tf.fuzz.report import peak_rss_mib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.data.synthetic import wod as synthetic
+    from ff3d_tf.data.wod import waymo
+    from ff3d_tf.fuzz import av2 as av2_fuzz, config as config_fuzz, files as files_fuzz, wod as wod_fuzz
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--mutants", type=int, default=2000, help="damaged WOD records decoded one by one")
     p.add_argument("--files", type=int, default=40, help="damaged WOD files read whole (mixed or cut)")

@@ -13,12 +13,13 @@ import argparse
 import os
 import time
 
-import _common  # noqa: F401
+import _common
 
-from ff3d_tf.data.synthetic import wod as synthetic
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.data.synthetic import wod as synthetic
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("--out_dir", required=True)
     p.add_argument("--num_segments", type=int, default=2)

@@ -8,10 +8,10 @@ python tools/model_summary.py --config configs/fastflow3d_waymo.yaml [--set mode
 """
 import _common
 
-from ff3d_tf.model import build_model
-
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.model import build_model
     args = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml").parse_args()
     cfg = _common.load(args)
     model = build_model(cfg)

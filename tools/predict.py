@@ -28,7 +28,6 @@ import _common
 from ff3d_tf import viz3d
 from ff3d_tf.data.files import point_files
 from ff3d_tf.data.files.point_file_errors import PointFileError
-from ff3d_tf.inference import predict_job
 
 
 def _intensity_scale(text: str):
@@ -83,7 +82,9 @@ def _arguments():
     return args
 
 
-def _source(args, cfg) -> predict_job.PairSource:
+def _source(args, cfg):
+    """The pair source of the command line (`predict_job.PairSource`)."""
+    from ff3d_tf.inference import predict_job
     if args.av2_log:  # its labelled pair comes from the labels pipeline, which the inference job does not import
         import tensorflow as tf
         from ff3d_tf.labels import av2
@@ -98,6 +99,8 @@ def _source(args, cfg) -> predict_job.PairSource:
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.inference import predict_job
     args = _arguments()
     cfg = _common.load(args)
     predictor = None

@@ -25,7 +25,6 @@ import time
 import _common
 
 from ff3d_tf.config import NsfpConfig
-from ff3d_tf.labels import pseudo_records
 
 
 def _args():
@@ -44,6 +43,8 @@ def _args():
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.labels import pseudo_records
     args, beam_args = _args()
     cfg = _common.load(args)  # a bad value exits naming its key, before any work
     try:

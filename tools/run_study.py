@@ -17,7 +17,6 @@ import _common
 
 from ff3d_tf.training import studies
 from ff3d_tf.config import ConfigError, load_config
-from ff3d_tf.data.pairs import list_segment_files
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -31,6 +30,8 @@ def _run(args: list[str]) -> None:
 
 
 def main():
+    _common.start("train")  # before TensorFlow is imported
+    from ff3d_tf.data.pairs import list_segment_files
     p = _common.parser(__doc__, "configs/synthetic_cpu.yaml")
     p.add_argument("--study", required=True, choices=sorted(studies.STUDIES))
     p.add_argument("--train_dir", required=True)

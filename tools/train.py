@@ -14,13 +14,13 @@ import sys
 
 import _common
 
-from ff3d_tf.data.pairs import list_segment_files
-from ff3d_tf.training.cluster import EXIT_PEER_LOST, EXIT_PREEMPTED, PeerLostError
-from ff3d_tf.training.input import training_files
-from ff3d_tf.training.trainer import Trainer
-
 
 def main():
+    _common.start("train")  # before TensorFlow is imported
+    from ff3d_tf.data.pairs import list_segment_files
+    from ff3d_tf.training.cluster import EXIT_PEER_LOST, EXIT_PREEMPTED, PeerLostError
+    from ff3d_tf.training.input import training_files
+    from ff3d_tf.training.trainer import Trainer
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--data_dir", required=True, help="directory (or glob) of training segment TFRecords")
     p.add_argument("--val_dir", default=None, help="validation records for the periodic metric subset")

@@ -24,11 +24,12 @@ import time
 import _common  # noqa: F401
 
 from ff3d_tf.config import ConfigError
-from ff3d_tf.data import pair_records, pairs
 from ff3d_tf.data.files import point_files
 
 
 def main():
+    _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.data import pair_records, pairs
     p = _common.parser(__doc__)
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("--source", choices=pair_records.SOURCES, required=True)

@@ -1,9 +1,10 @@
 """The Bazel target that each first-party source file needs, derived from its syntax tree, and its BUILD stanza.
 
-- ff3d_tf/**/*.py and bazel/targets/*.py: a `py_library` per module (named after the module; `__init__.py` after its
-  package folder), whose deps hold the target of every first-party module it imports.
-- tools/*.py: a `py_binary` per tool (`py_library` for helpers named `_*`), deps as above; `data` holds //configs when
-  the tool names a configs/ file and the target of each tool it starts (a string naming `<tool>.py`).
+- ff3d_tf/**/*.py, lab/**/*.py (but lab/tools/) and bazel/targets/*.py: a `py_library` per module (named after the
+  module; `__init__.py` after its package folder), whose deps hold the target of every first-party module it imports.
+- tools/*.py and lab/tools/*.py: a `py_binary` per tool (`py_library` for helpers named `_*`), deps as above (a lab
+  tool's bare `import _common` is tools/_common.py); `data` holds //configs when the tool names a configs/ file and
+  the target of each tool it starts (a string naming `<tool>.py`).
 - tests/**/test_*.py: a `pytest_test` (bazel/pytest.bzl) per file, with `fast` / `slow` saying whether the file has
   tests not marked / marked `@pytest.mark.slow`; deps hold what it imports (other test modules included) and `data`
   the configs, the in-tree Argoverse 2 sample and the tools that the file names. Other tests/**/*.py: a `py_library`
@@ -20,7 +21,10 @@ from bazel.targets.build_files import short_label
 from bazel.targets.sources import imported_modules, parse, speed_split, string_constants
 
 PACKAGE = "ff3d_tf"
-LIBRARY_DIRS = (PACKAGE, "bazel/targets")  # a py_library per module
+LAB = "lab"  # the studies, benchmarks and profilers: never imported by ff3d_tf (tests/test_layout.py)
+PACKAGES = (PACKAGE, LAB)  # the first-party packages a bare `import <name>` may name
+TOOL_DIRS = ("tools", "lab/tools")  # a py_binary per tool; each runs with its own folder and tools/ on sys.path
+LIBRARY_DIRS = (PACKAGE, LAB, "bazel/targets")  # a py_library per module (but those of TOOL_DIRS)
 OWNED_DIRS = LIBRARY_DIRS + ("tools", "tests")  # the folders (and their subfolders) whose BUILD files are written
 RULES_WITH_SOURCES = ("py_library", "py_binary", "py_test", "pytest_test")
 CONFIGS = "//configs:configs"
@@ -119,8 +123,8 @@ class Tree:
         for name in imported_modules(tree, module, is_package,
                                      lambda n: os.path.isfile(os.path.join(self.root, n.replace(".", "/") + ".py"))):
             label = None
-            if owned(name.replace(".", "/")) and (name == PACKAGE or "." in name):
-                label = self.library_label(name)  # ff3d_tf..., or tests.x.y (the checkout's root is on sys.path)
+            if owned(name.replace(".", "/")) and (name in PACKAGES or "." in name):
+                label = self.library_label(name)  # ff3d_tf.x, lab.x or tests.x.y (the checkout's root is on sys.path)
             elif "." not in name:
                 for d in local_dirs:
                     if os.path.isfile(os.path.join(self.root, d, name + ".py")):
@@ -140,10 +144,10 @@ class Tree:
             data.add(CONFIGS)
         if "AV2_LOG" in names or any(AV2_NEEDLE in t for t in texts):
             data.add(AV2_SAMPLE)
-        for tool in self.files("tools", "*.py"):
+        for tool in [t for d in TOOL_DIRS for t in self.files(d, "*.py")]:
             stem = os.path.basename(tool)
             if any(t == stem or t.endswith("/" + stem) for t in texts):
-                data.add(f"//tools:{stem[:-3]}")
+                data.add(f"//{os.path.dirname(tool)}:{stem[:-3]}")
         return data
 
     def expected(self) -> list[Expected]:
@@ -151,9 +155,9 @@ class Tree:
         return self._libraries() + self._tools() + self._tests()
 
     def _libraries(self) -> list[Expected]:
-        """A py_library per module of LIBRARY_DIRS."""
+        """A py_library per module of LIBRARY_DIRS (the tools' folders left to `_tools`)."""
         out = []
-        for path in [p for top in LIBRARY_DIRS for p in self.files(top)]:
+        for path in [p for top in LIBRARY_DIRS for p in self.files(top) if os.path.dirname(p) not in TOOL_DIRS]:
             package, base = os.path.dirname(path), os.path.basename(path)
             is_package = base == "__init__.py"
             name = package.rsplit("/", 1)[-1] if is_package else base[:-3]
@@ -165,18 +169,19 @@ class Tree:
         return out
 
     def _tools(self) -> list[Expected]:
-        """A py_binary per tool of tools/, a py_library per helper `_*.py`."""
+        """A py_binary per tool of TOOL_DIRS, a py_library per helper `_*.py`."""
         out = []
-        for path in self.files("tools", "*.py"):
-            name = os.path.basename(path)[:-3]
+        for path in [p for d in TOOL_DIRS for p in self.files(d, "*.py")]:
+            package, name = os.path.dirname(path), os.path.basename(path)[:-3]
             tree = self.parse(path)
             if tree is None:
                 continue
-            label = f"//tools:{name}"
-            deps = self.first_party_deps(tree, name, False, label, local_dirs=["tools"])
+            label = f"//{package}:{name}"
+            local_dirs = [package] + (["tools"] if package != "tools" else [])  # a lab tool's `_common` is tools/'s
+            deps = self.first_party_deps(tree, name, False, label, local_dirs=local_dirs)
             data = self.data_needs(tree) - {label}
             rule = "py_library" if name.startswith("_") else "py_binary"
-            out.append(Expected(path, "tools", name, rule, deps, data if rule == "py_binary" else ()))
+            out.append(Expected(path, package, name, rule, deps, data if rule == "py_binary" else ()))
         return out
 
     def _tests(self) -> list[Expected]:

@@ -44,7 +44,6 @@ from __future__ import annotations
 import collections
 import logging
 
-import keras
 import numpy as np
 import tensorflow as tf
 
@@ -79,16 +78,13 @@ def _check_choice(name, value, choices):
 # -- the TensorFlow function that is converted ----------------------------------------------------------------------
 
 def export_twin(model: FastFlow3D, variant: str) -> FastFlow3D:
-    """A float32 copy of `model` in compile mode "none" with the variant's point chunk and the same weights."""
+    """A float32 copy of `model` in compile mode "none" (its plan's forms otherwise) with the variant's point chunk
+    and the same weights."""
     _check_choice("variant", variant, VARIANTS)
     chunk = ops.ONE_CHUNK if variant == "single_chunk" else ops.POINT_CHUNK
-    previous = keras.config.dtype_policy()
-    keras.config.set_dtype_policy("float32")  # the layers take the global policy: float32 also for a mixed model
-    try:
-        twin = FastFlow3D.from_config({**model.get_config(), "compile_mode": "none", "point_chunk_size": chunk,
-                                       "dtype": "float32"})
-    finally:
-        keras.config.set_dtype_policy(previous)
+    plan = model.plan.replace(compile_mode="none", precision="float32")
+    twin = FastFlow3D.from_config({**model.get_config(), "plan": plan.to_dict(), "point_chunk_size": chunk,
+                                   "dtype": "float32"})
     twin.build()
     weights = model.get_weights()
     if [w.shape for w in weights] != [tuple(v.shape) for v in twin.weights]:

@@ -21,6 +21,7 @@ import tensorflow as tf
 
 from ff3d_tf import geometry
 from ff3d_tf.data.pairs import bucket_size_tf
+from ff3d_tf.model import plan as plan_lib
 from ff3d_tf.model.fastflow3d import FastFlow3D
 from ff3d_tf.predictor import ServingPredictor
 
@@ -65,8 +66,11 @@ class FlowServingModule(tf.Module):
 
 
 def export_saved_model(model: FastFlow3D, path: str, bucket_base: int, jit_compile: bool = True) -> str:
+    """Writes `model` as a SavedModel at `path` (signature serving_default) with the execution plan that computes it
+    (`path/execution_plan.json`)."""
     module = FlowServingModule(model, bucket_base, jit_compile)
     tf.saved_model.save(module, path, signatures={"serving_default": module.serve})
+    plan_lib.save(model.plan, path)
     return path
 
 

@@ -2,7 +2,7 @@
 an export directory as a `ff3d_tf.predictor.Predictor`.
 
 Nothing here imports TensorFlow or a module that does: a machine with JAX/XLA and no TensorFlow (a GPU box) runs the
-model's compiled forward from an export directory alone; `ff3d_tf.inference.xla_timing` times it there. The
+model's compiled forward from an export directory alone; `lab.inference.xla_timing` times it there. The
 directory's layout, manifest and weights are `ff3d_tf.xla_export_dir`'s (shared with the training step's programs).
 """
 from __future__ import annotations

@@ -35,9 +35,9 @@ from ff3d_tf.xla_export_dir import OUTPUT_KEYS, input_specs, model_weights, trac
 PLATFORMS = xla_program.PLATFORMS
 
 # Other programs of the same model and weights that an export can add beside its artifacts (manifest "variants", by
-# name; names join with "+"): tools/profile_xla.py times and profiles them against the plain artifacts, on the same
+# name; names join with "+"): lab/tools/profile_xla.py times and profiles them against the plain artifacts, on the same
 # inputs, and checks that they compute the same flow.
-VARIANTS = {"fold_bn": "the BatchNorm folded into each ConvBlock's convolution (ConvBlock.fold_batch_norm)",
+VARIANTS = {"fold_bn": "the BatchNorm folded into each ConvBlock's convolution (the plan's fold_batch_norm)",
             "one_chunk": "the point encoder over the whole cloud in one chunk (ops.ONE_CHUNK)"}
 
 
@@ -70,12 +70,12 @@ def check_variants(variants: Sequence[str]) -> None:
 
 def variant_model(cfg: ExperimentConfig, precision: str, model, variant: str):
     """A model that traces `variant` (see VARIANTS) for `precision`, with `model`'s weights as its arguments."""
-    from ff3d_tf.model import build_model, layers, ops
+    from ff3d_tf.model import build_model, ops, plan
     check_variants([variant])
     parts = variant.split("+")
     cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, mixed_precision=precision == "bfloat16"))
-    tracer = build_model(cfg, point_chunk_size=ops.ONE_CHUNK if "one_chunk" in parts else None)
-    layers.fold_batch_norms(tracer, "fold_bn" in parts)
+    variant_plan = plan.resolve(cfg.model)[0].replace(fold_batch_norm="fold_bn" in parts)
+    tracer = build_model(cfg, point_chunk_size=ops.ONE_CHUNK if "one_chunk" in parts else None, plan=variant_plan)
     if [(v.shape, v.dtype) for v in model_weights(tracer)] != [(v.shape, v.dtype) for v in model_weights(model)]:
         raise ValueError(f"variant {variant} changes the weights' shapes or dtypes")
     return tracer

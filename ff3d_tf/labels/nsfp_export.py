@@ -1,7 +1,7 @@
 """NSFP's per-pair optimiser as portable XLA programs (TensorFlow side): per point bucket, the distance transform of
 one cloud and a segment of S Adam steps of the fit, traced from `ff3d_tf.labels.nsfp` / `distance_grid` themselves
 (so the export follows their objective) and written through `ff3d_tf.xla_program`; `ff3d_tf.labels.nsfp_program`
-(format, loading, timing; no TensorFlow) runs them where only JAX is installed.
+(format, loading; no TensorFlow) runs them where only JAX is installed (the lab times them: `lab.labels.nsfp_timing`).
 
 Both programs are XLA programs in TensorFlow already (`jit_compile=True`), so both are exported: a GPU runs the whole
 pair (grid build and fit) on the device. What stays on the host: the grid's bounds and the clouds' centring
@@ -235,53 +235,3 @@ def export_nsfp(options: nsfp.NsfpOptions, points: Sequence[int], out_dir: str, 
     with open(os.path.join(out_dir, nsfp_program.MANIFEST_NAME), "w") as f:
         json.dump(manifest, f, indent=1)
     return manifest
-
-
-def compare_on_this_machine(export_dir: str, options: nsfp.NsfpOptions, points: int | None = None, rounds: int = 2,
-                            log=print) -> dict:
-    """Seconds per Adam step and per grid build on this machine's default JAX device (the CPU here) through the
-    exported float32 programs against TensorFlow's own (`nsfp._fit_segment`, `build_distance_grid`), on the pair of
-    `points` points (default: the first entry's): after one warm-up call each (compilation), `rounds` rounds that call
-    each of the four once in turn (`bench.round_robin`: a change of load hits all alike), medians. `options` must be
-    those of the export."""
-    from ff3d_tf import bench
-    manifest = nsfp_program.read_manifest(export_dir)
-    entry = next(e for e in manifest["entries"] if points in (None, e["points"]))
-    if json.loads(json.dumps(dataclasses.asdict(options))) != manifest["options"]:
-        raise ValueError(f"{export_dir} was exported with other NSFP options: {manifest['options']}")
-    host_clouds = nsfp_program.padded_clouds(nsfp_program.entry_pair(entry), entry)
-    tf_clouds = tuple(tf.constant(c) for c in host_clouds)
-    program = nsfp_program.CompiledNsfp(export_dir, manifest, entry, "float32")
-    start = nsfp_program.initial_state(entry, nsfp_program.load_initial_params(export_dir, manifest),
-                                       nsfp_program.load_state_arrays(export_dir))
-    jax_clouds = program.put(host_clouds)
-    jax_grids, jax_state = program.fit(jax_clouds, start, 0)
-    tf_grid_pair = tf_grids(entry, host_clouds, options)
-    segment = tf_segment(options, entry, manifest["hyper"])
-    held = {"tf": nsfp.initial_fit_state(options, entry["padded_points"]), "jax": jax_state}
-    loss_at = program.index["best_loss"]
-
-    def tf_step():
-        held["tf"] = segment(held["tf"], tf_clouds, tf_grid_pair)
-        held["tf"].best_loss.numpy()
-
-    def jax_step():
-        held["jax"] = program.segment(held["jax"], jax_clouds, jax_grids)
-        held["jax"][loss_at].block_until_ready()
-    calls = {"tf_fit": tf_step, "jax_fit": jax_step,
-             "tf_grid": lambda: tf_grids(entry, host_clouds, options)[0].distance_m.numpy(),
-             "jax_grid": lambda: program.grids(jax_clouds)[0].block_until_ready()}
-    readings = bench.round_robin(calls, rounds, warmup=1)
-    ms = {name: bench.middle([r["ms"] for r in rows]) for name, rows in readings.items()}
-    s = entry["segment_steps"]
-    result = {"points": entry["points"], "padded_points": entry["padded_points"], "grid_dims": entry["dims"],
-              "segment_steps": s, "rounds": rounds, "jax_compile_s": program.compile_s,
-              "tf_seconds_per_step": ms["tf_fit"] / 1e3 / s, "jax_seconds_per_step": ms["jax_fit"] / 1e3 / s,
-              "tf_grid_s_one_cloud": ms["tf_grid"] / 1e3, "jax_grid_s_one_cloud": ms["jax_grid"] / 1e3,
-              "load_average_at_end": bench.load_average()}
-    result["jax_over_tf_per_step"] = result["jax_seconds_per_step"] / result["tf_seconds_per_step"]
-    result["jax_over_tf_grid"] = result["jax_grid_s_one_cloud"] / result["tf_grid_s_one_cloud"]
-    log(f"{entry['points']} points: {result['jax_seconds_per_step']:.3f} s per step through the exported program, "
-        f"{result['tf_seconds_per_step']:.3f} s in TensorFlow (ratio {result['jax_over_tf_per_step']:.2f}); grid "
-        f"{result['jax_grid_s_one_cloud']:.2f} s vs {result['tf_grid_s_one_cloud']:.2f} s per cloud")
-    return result

@@ -118,31 +118,6 @@ def check_resolved(mode: str) -> str:
     return mode
 
 
-# How the model computes its convolutions: "fast" (the default: `layers.Conv2D`'s forms, the decoder's U6 composed with
-# the next block's U1, `layers.UpsampleSkip.into_next`, and with the paper head rows V (and where it applies U5, U6)
-# composed with the head's grid part, `FastFlow3D.grid_stages`) or "plain" (Keras's convolutions as they are, one
-# layer after the other, the layout before; kept for the studies that compare the two).
-CONVOLUTION_FORMS = ("fast", "plain")
-convolution_forms = "fast"
-
-
-def fast_convolutions() -> bool:
-    """Whether `convolution_forms` is "fast" (ValueError for a value not in CONVOLUTION_FORMS)."""
-    if convolution_forms not in CONVOLUTION_FORMS:
-        raise ValueError(f"convolution_forms={convolution_forms!r}: one of {', '.join(CONVOLUTION_FORMS)}")
-    return convolution_forms == "fast"
-
-
-def strided_gradients_by_phases(mode: str, device_type: str | None = None) -> bool:
-    """Whether the stride-2 convolutions (rows C, G, M) compute their gradients phase by phase (`layers.Conv2D`,
-    `ops.conv2d_stride2`): where XLA compiles the convolutions (mode xla) on a CPU (`device_type`, default the visible
-    accelerator). XLA's CPU backend computes a strided convolution's input gradient by dilating the output gradient
-    with zeros, several times slower than the same arithmetic as stride-1 convolutions on the phases
-    (benchmarks/cpu_step_avx2_convolutions.json). TensorFlow's own kernels (modes hybrid and none) and GPUs keep
-    the plain gradient."""
-    return check_resolved(mode) == "xla" and (device_type or accelerator_type()) == "CPU"
-
-
 def describe(mode: str) -> str:
     """One line saying what runs where in a resolved mode (printed at start, recorded with benchmarks)."""
     return {"xla": "whole forward and training step in one XLA program",
@@ -156,25 +131,17 @@ def xla_function(fn):
     return tf.function(fn, jit_compile=True, autograph=False)
 
 
-# How compile mode hybrid splits the point encoding into XLA programs (`hybrid_encode`): "per_cloud" (the default)
-# or "one" (both clouds in one program, the layout before the split; kept for the studies that compare the two).
-HYBRID_POINT_PROGRAMS = ("per_cloud", "one")
-hybrid_point_programs = "per_cloud"
-
-
-def hybrid_encode(encode_points, inputs, training):
+def hybrid_encode(encode_points, inputs, training, point_programs: str = "per_cloud"):
     """The point encoding of compile mode hybrid: `encode_points(inputs, training, stage=...)` (a model's
     `FastFlow3D.encode_points`) with its parts as XLA programs of their own.
 
     XLA's CPU backend runs a scatter on one thread and the instructions of one program one after another, so the two
-    clouds' pillar scatters in one program take one core each in turn. As separate programs (the pillar cells of each
-    cloud, the statistics of training, each cloud's encoding and scatter, `PointEncoder.call`'s `stage`), the clouds
-    depend on nothing of each other and TensorFlow's executor runs them at the same time on its inter-op threads; so
-    do their gradient programs. The values are those of one program. `hybrid_point_programs = "one"` keeps the single
-    program."""
-    if hybrid_point_programs not in HYBRID_POINT_PROGRAMS:
-        raise ValueError(f"hybrid_point_programs={hybrid_point_programs!r}: one of {', '.join(HYBRID_POINT_PROGRAMS)}")
-    if hybrid_point_programs == "one":
+    clouds' pillar scatters in one program take one core each in turn. As separate programs (`point_programs`
+    "per_cloud": the pillar cells of each cloud, the statistics of training, each cloud's encoding and scatter,
+    `PointEncoder.call`'s `stage`), the clouds depend on nothing of each other and TensorFlow's executor runs them at
+    the same time on its inter-op threads; so do their gradient programs. The values are those of one program
+    (`point_programs` "one", the execution plan's field)."""
+    if point_programs == "one":
         return xla_function(lambda x: encode_points(x, training))(inputs)
     return encode_points(inputs, training, stage=xla_function)
 

@@ -10,10 +10,9 @@ batch axis and pass through the same layers once. The decoder (S, T, U, V) takes
 two encoders' layers (t0 first), and the head (W-Z) regresses flow for the t0 points. `head="gru"` replaces rows
 W-Z with DeFlow's GRU point decoder (`ff3d_tf.model.gru_head.GRUHead`, Zhang et al., ICRA 2024).
 
-Precision: the dense stages (rows C-V) compute in the dtype of the global Keras policy while the model is built
-(`build_model`: "mixed_bfloat16" for `model.mixed_precision` resolved to bfloat16, see `ff3d_tf.model.compile`); the
-point stages (rows A, B, W-Z: coordinates, pillar indices, point encoder, pillar sums, head) are float32 layers in
-every precision, and so are all variables.
+Precision: the dense stages (rows C-V) compute in the execution plan's precision (`ff3d_tf.model.plan`: bfloat16 for
+`model.mixed_precision` resolved to it, see `ff3d_tf.model.compile`); the point stages (rows A, B, W-Z: coordinates,
+pillar indices, point encoder, pillar sums, head) are float32 layers in every precision, and so are all variables.
 """
 from __future__ import annotations
 
@@ -29,39 +28,41 @@ from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.model import gru_head
 from ff3d_tf.model import layers as L
 from ff3d_tf.model import ops
+from ff3d_tf.model import plan as plan_lib
 
 _LOG = logging.getLogger(__name__)
 
 
 @keras.saving.register_keras_serializable(package="ff3d_tf")
 class FastFlow3D(keras.Model):
-    """The network of the paper's table, in three stages with their own entry points:
+    """The network of the paper's table, with two forwards that compute the same values up to float rounding:
 
-    `encode_points` (rows A, B: pillarization, point encoder, Snap-To-Grid scatter), `dense_stages` (rows C-V: the
-    convolutional encoder and decoder on the BEV grids) and `decode_points` (rows W-Z: ungrid, head). `call` runs
-    them in order; `compile_mode` says how a traced call (inside any `tf.function`) compiles them:
+    `table_forward`: rows A to Z in the table's order, one call per row, as a reader holds it beside the paper;
+    the fused forward (`fused_forward`): the same arithmetic in the cheaper forms of the execution plan, in three
+    stages with their own entry points, `encode_points` (rows A, B, and the points' own share of rows Y-Z),
+    `grid_stages` (rows C-V, and the head's share of each cell) and `decode_points` (rows W-Z).
+
+    `plan` (`ff3d_tf.model.plan.ExecutionPlan`, or its dict) says which forward `call` runs, in which forms, in which
+    precision, and how a traced call (inside any `tf.function`) compiles it (`compile_mode`):
       "xla"    the whole forward as one XLA program;
-      "hybrid" the two point stages as their own XLA programs, the dense stages as TensorFlow graph kernels (oneDNN
-               on CPU), which are faster than XLA's convolutions there;
+      "hybrid" the fused forward's two point stages as their own XLA programs, the dense stages as TensorFlow graph
+               kernels (oneDNN on CPU, faster there than XLA's); the table forward runs as "none";
       "none"   no XLA.
     Eager calls run op by op in every mode, and a caller that compiles the whole call with XLA passes
-    `inline_stages=True` (one program, whatever the mode). `ff3d_tf.model.compile` resolves the config's "auto".
-    `conv_dtype` (float32 or bfloat16) is the compute dtype of the dense stages, set by the global dtype policy at
-    construction; the point stages are float32 layers whatever the policy.
+    `inline_stages=True` (one program, whatever the mode). `ff3d_tf.model.plan.resolve` makes the plan of a config.
+    `plan.precision` (float32 or bfloat16) is the compute dtype of the dense stages (rows C-V, `conv_dtype`); the point
+    stages are float32 layers in every precision.
     `point_chunk_size`: points (over the flattened batch) that the point encoder encodes and scatters at a time, and
     that the GRU head decodes at a time.
     `head`: "paper" (rows W-Z: `head_y`, `head_z`) or "gru" (`head_gru`: DeFlow's GRU point decoder, its hidden state
     the point's pillar embedding of both clouds and the decoder's output there, 3C wide; its input the offset from the
     pillar centre encoded to C values; `gru_iterations` steps; an MLP of `head_hidden_dim` hidden units to the flow).
-    `remat_encoder`: in training, each encoder stage's activations are recomputed in the backward pass from its input
-    (`_rematerialized_stage`) instead of held; the values are the same.
     """
 
     # Keyword-only, the paper's values without defaults: they live in `ff3d_tf.config` alone (`model_kwargs`).
     def __init__(self, *, num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, point_feature_dim,
                  encoder_widths, encoder_depths, decoder_dims, head_hidden_dim, zero_init_output=False,
-                 compile_mode="none", point_chunk_size=ops.POINT_CHUNK, head="paper", gru_iterations=4,
-                 remat_encoder=False, **kwargs):
+                 plan=None, point_chunk_size=ops.POINT_CHUNK, head="paper", gru_iterations=4, **kwargs):
         super().__init__(**kwargs)
         self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
         self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
@@ -71,12 +72,12 @@ class FastFlow3D(keras.Model):
         self.decoder_dims = tuple(tuple(int(v) for v in d) for d in decoder_dims)
         self.head_hidden_dim = int(head_hidden_dim)
         self.zero_init_output = bool(zero_init_output)
-        self.compile_mode = compile_lib.check_resolved(compile_mode)
+        self.plan = plan_lib.ExecutionPlan.from_dict(plan) if isinstance(plan, dict) else (
+            plan or plan_lib.ExecutionPlan())
         self.point_chunk_size = int(point_chunk_size)
         if head not in ("paper", "gru"):
             raise ValueError(f"head={head!r}: paper or gru")
         self.head, self.gru_iterations = head, int(gru_iterations)
-        self.remat_encoder = bool(remat_encoder)
 
         # The point stages in float32 under any global policy: pillar indices and offsets (a bfloat16 x would move
         # points across pillars), the point encoder and its pillar sums, and the head. XLA's CPU backend has no
@@ -85,6 +86,27 @@ class FastFlow3D(keras.Model):
                                      dtype="float32")
         self.point_encoder = L.PointEncoder(self.point_feature_dim, self.num_pillars_x, self.num_pillars_y,
                                             chunk_size=self.point_chunk_size, name="A", dtype="float32")
+        # The dense stages compute in the plan's precision (bfloat16: float32 variables, no loss scaling needed, as
+        # bfloat16 has float32's exponent range); Keras layers take the policy that is global while they are made.
+        previous = keras.config.dtype_policy()
+        keras.config.set_dtype_policy("mixed_bfloat16" if self.plan.precision == "bfloat16" else "float32")
+        try:
+            self._make_dense_stages()
+        finally:
+            keras.config.set_dtype_policy(previous)
+        if self.head == "paper":
+            self.head_y = L.UngridHead(self.head_hidden_dim, grid_channels=self.decoder_dims[-1][0],
+                                       point_channels=self.point_feature_dim, name="Y", dtype="float32")
+            self.head_z = keras.layers.Dense(3, kernel_initializer="zeros" if self.zero_init_output else
+                                             "glorot_uniform", name="Z", dtype="float32")
+        else:
+            self.head_gru = gru_head.GRUHead(
+                input_units=self.point_feature_dim, mlp_units=self.head_hidden_dim, iterations=self.gru_iterations,
+                chunk_size=self.point_chunk_size, zero_init_output=self.zero_init_output, name="gru", dtype="float32")
+
+    def _make_dense_stages(self):
+        """Rows C-V, each convolution told the plan's forms (`layers.Conv2D`, `layers.ConvBlock`)."""
+        plan = self.plan
         letters = iter(string.ascii_uppercase[2:] + "".join(f"E{i}" for i in range(100)))
         # Every layer is also a plain attribute (conv_C, ..., upsample_S, ...): TF checkpoints track attributes, not
         # the Keras-tracked lists below, so optimizer state and weights round-trip through tf.train.Checkpoint.
@@ -93,7 +115,7 @@ class FastFlow3D(keras.Model):
             stage = []
             for i in range(depth):
                 block = L.ConvBlock(width, strides=2 if i == 0 else 1, name=next(letters))
-                block.conv.strided_gradients_by_phases = compile_lib.strided_gradients_by_phases(self.compile_mode)
+                block.fold_batch_norm = plan.fold_batch_norm
                 setattr(self, f"conv_{block.name}", block)
                 stage.append(block)
             self.encoder_stages.append(stage)
@@ -103,14 +125,15 @@ class FastFlow3D(keras.Model):
             self.upsample_skips.append(getattr(self, f"upsample_{n}"))
         self.conv_v = L.Conv2D(self.decoder_dims[-1][0], 3, padding="same", use_bias=False,
                                kernel_initializer="glorot_uniform", name="V")
-        if self.head == "paper":
-            self.head_y = L.UngridHead(self.head_hidden_dim, name="Y", dtype="float32")
-            self.head_z = keras.layers.Dense(3, kernel_initializer="zeros" if self.zero_init_output else
-                                             "glorot_uniform", name="Z", dtype="float32")
-        else:
-            self.head_gru = gru_head.GRUHead(
-                input_units=self.point_feature_dim, mlp_units=self.head_hidden_dim, iterations=self.gru_iterations,
-                chunk_size=self.point_chunk_size, zero_init_output=self.zero_init_output, name="gru", dtype="float32")
+        convolutions = ([b.conv for s in self.encoder_stages for b in s] + [self.conv_v] +
+                        [c for u in self.upsample_skips for c in (u.u1, u.u3, u.u5, u.u6)])
+        for conv in convolutions:
+            conv.matmul_1x1, conv.stride2_phase_gradients = plan.matmul_1x1, plan.stride2_phase_gradients
+
+    @property
+    def compile_mode(self) -> str:
+        """The plan's compile mode: "xla", "hybrid" or "none"."""
+        return self.plan.compile_mode
 
     @property
     def conv_dtype(self) -> str:
@@ -138,7 +161,7 @@ class FastFlow3D(keras.Model):
             x_shape = both(skip)[:-1] + (block.depth,)
         self.conv_v.build(x_shape)
         if self.head == "paper":
-            self.head_y.build(((None, h, w, self.conv_v.filters), (None, None, c), (None, None, 8), (None, None)))
+            self.head_y.build((None, None, self.conv_v.filters + c + 8))
             self.head_z.build((None, None, self.head_hidden_dim))
         else:  # hidden state: the pillar embeddings at t0 and t-1, the decoder's output
             self.head_gru.build([(None, h, w, c), (None, h, w, c), (None, h, w, self.conv_v.filters)])
@@ -149,17 +172,73 @@ class FastFlow3D(keras.Model):
         depth), so the stages are traced inline as plain ops, whatever `compile_mode`. Every such caller must pass it
         (see `ff3d_tf.model.compile`)."""
         inputs = {k: inputs[k] for k in schema.MODEL_INPUT_KEYS}
+        forward = self.table_forward if self.plan.forward == "table" else self.fused_forward
         if self.compile_mode == "none" or tf.executing_eagerly() or inline_stages:
-            return self._forward(inputs, training)
+            return forward(inputs, training)
         # A fresh function per trace of the caller: the stage reads the variables (or, under `stateless_call`, the
         # values that stand in for them) of the graph being traced.
         if self.compile_mode == "xla":
-            return compile_lib.xla_function(lambda x: self._forward(x, training))(inputs)
-        encoded = compile_lib.hybrid_encode(self.encode_points, inputs, training)
+            return compile_lib.xla_function(lambda x: forward(x, training))(inputs)
+        if self.plan.forward == "table":
+            return forward(inputs, training)
+        encoded = compile_lib.hybrid_encode(self.encode_points, inputs, training, self.plan.point_programs)
         grid = self.grid_stages(encoded["bev_features"], training)
         return compile_lib.xla_function(self.decode_points)(grid, encoded)
 
-    def _forward(self, inputs, training):
+    # -- the table forward -------------------------------------------------------------------------------------------
+
+    def table_forward(self, inputs, training=False):
+        """The paper's table, row by row: the model inputs (module docstring) -> flow_mps [B,N0,3] (0 where invalid),
+        point_valid [B,N0]. Every convolution as the table lists it, whatever the plan's forms."""
+        xyz_t0, xyz_tm1 = inputs["points_xyz_t0"], inputs["points_xyz_tm1_in_t0"]
+        # Pillarize (the input of rows A and B): the 8-D encoding, the flat pillar id and validity of every point.
+        encoding_t0, ids_t0, valid_t0 = self.pillarize(xyz_t0, inputs["point_features_t0"],
+                                                       tf.cast(inputs["point_mask_t0"], tf.bool))
+        encoding_tm1, ids_tm1, valid_tm1 = self.pillarize(xyz_tm1, inputs["point_features_tm1"],
+                                                          tf.cast(inputs["point_mask_tm1"], tf.bool))
+        # A: per-point features [B,N,C] of both clouds (shared weights, one set of BN statistics).
+        features_t0, features_tm1 = self.point_encoder.point_features(
+            [encoding_t0, encoding_tm1], [valid_t0, valid_tm1], training=training)
+        # B: Snap-To-Grid, the pillar sums [B,H,W,C] of each cloud; both clouds stacked on the batch axis, t0 first.
+        grid_t0 = ops.pillar_sums(features_t0, ids_t0, self.num_pillars_y, self.num_pillars_x)
+        grid_tm1 = ops.pillar_sums(features_tm1, ids_tm1, self.num_pillars_y, self.num_pillars_x)
+        bev = tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_dtype)  # [2B,H,W,C]
+        # C-R: three encoder stages of ConvBlocks (3x3 convolution, BatchNorm, ReLU); the first of each has stride 2.
+        x, skips = bev, [bev]
+        for stage in self.encoder_stages:
+            for block in stage:
+                x = block(x, training=training)
+            skips.append(x)
+        # S, T, U: Upsample-Skip blocks on the depth-wise concatenation of the two clouds' encoder outputs.
+        upsample_s, upsample_t, upsample_u = self.upsample_skips
+        x = upsample_s([_both_clouds(skips[3]), _both_clouds(skips[2])])
+        x = upsample_t([x, _both_clouds(skips[1])])
+        x = upsample_u([x, _both_clouds(skips[0])])
+        # V: 3x3 convolution, the flow embedding of every cell [B,H,W,C_V].
+        v = self.conv_v(x)
+        if self.head == "gru":  # W and DeFlow's GRU decoder in place of X-Z
+            point_rows_t0 = self.pillarize.point_rows(xyz_t0, inputs["point_features_t0"])
+            return self._gru_flow(bev, v, point_rows_t0, ids_t0, valid_t0)
+        # W: Ungrid, each t0 point takes its pillar's cell embedding [B,N0,C_V].
+        cell_t0 = L.UngridHead.ungrid(tf.cast(v, tf.float32), ids_t0)
+        # X: concatenation with the point's feature (row A) and its 8-D encoding [B,N0,C_V + C + 8].
+        x = tf.concat([cell_t0, features_t0, encoding_t0], -1)
+        # Y: linear to head_hidden_dim; Z: linear to the flow (m/s).
+        flow = self.head_z(self.head_y(x))
+        return {"flow_mps": tf.where(valid_t0[..., None], flow, tf.zeros_like(flow)), "point_valid": valid_t0}
+
+    def _gru_flow(self, bev, grid, point_rows_t0, pillar_ids_t0, point_valid_t0):
+        """DeFlow's GRU head (`gru_head.GRUHead.decode`) on the pillar embeddings of both clouds (bev [2B,H,W,C]),
+        row V's output and each t0 point's offset from its pillar centre (from `Pillarize.point_rows`)."""
+        bev_t0, bev_tm1 = tf.split(bev, 2, axis=0)
+        flow = self.head_gru.decode([bev_t0, bev_tm1, grid], point_rows_t0, pillar_ids_t0, point_valid_t0,
+                                    encode=self._point_offsets)
+        return {"flow_mps": flow, "point_valid": point_valid_t0}
+
+    # -- the fused forward -------------------------------------------------------------------------------------------
+
+    def fused_forward(self, inputs, training=False):
+        """The table's values in the plan's forms: `encode_points`, `grid_stages`, `decode_points`."""
         encoded = self.encode_points(inputs, training)
         return self.decode_points(self.grid_stages(encoded["bev_features"], training), encoded)
 
@@ -199,37 +278,33 @@ class FastFlow3D(keras.Model):
 
     def dense_stages(self, bev_features, training=False):
         """Rows C-V: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> grid flow
-        embedding [B,H,W,C_V] in `conv_dtype`. (The forward runs `grid_stages`.)"""
+        embedding [B,H,W,C_V] in `conv_dtype`. (The fused forward runs `grid_stages`.)"""
         return self.conv_v(self.unet(bev_features, training))
 
     def grid_stages(self, bev_features, training=False):
-        """What the forward computes on the grid from bev_features [2B,H,W,C]: with the GRU head, rows C-V
+        """What the fused forward computes on the grid from bev_features [2B,H,W,C]: with the GRU head, rows C-V
         (`dense_stages`); with the paper head, the head's grid part on each cell, cell_flow [B,H,W,3] float32 (m/s;
         without the points' own share and the bias, `decode_points`).
 
-        Row V (a 3x3 convolution) and the head's grid part (`UngridHead.composed_with`: a linear map of V's 64
-        channels to 3 for every cell) are both linear with nothing between them, so they are one 3x3 convolution to 3
-        channels whose kernel is V's composed with the head's: row V's arithmetic for 3 output channels instead of 64,
-        forward and backward (the gradients of every kernel follow from the composed one's), the same values up to
-        float rounding. It runs in float32 under every precision, as the head always has.
+        `plan.v_with_head`: row V (a 3x3 convolution) and the head's grid part (`UngridHead.composed_with`: a linear
+        map of V's 64 channels to 3 for every cell) are both linear with nothing between them, so they are one 3x3
+        convolution to 3 channels whose kernel is V's composed with the head's: row V's arithmetic for 3 output
+        channels instead of 64, forward and backward (the gradients of every kernel follow from the composed one's).
+        It runs in float32 under every precision, as the head always has.
 
-        Where the dense stages compute in float32 and XLA compiles them for training (mode xla) or they run for
-        inference, row U's U5 and U6 (3x3 convolutions, linear with nothing between them and V either) join that
-        convolution: row U's merged input to the 3 channels in one pass (`ops.conv_chain_same`: the three kernels
-        composed into one 7x7 kernel, a matrix product to its 147 taps and shifted sums, the cells near the border
-        by the chain itself), a fraction of the three convolutions' arithmetic. Training on TensorFlow's own kernels
-        (modes hybrid and none) keeps U5 and U6 as they are: the shifted sums' gradients, op by op, cost more there
-        than the convolutions they replace; so does bfloat16, whose oneDNN convolutions the float32 product would
-        replace. (With `compile.convolution_forms` "plain", row V and then the head's grid part.)"""
+        `plan.decoder_chain`: row U's U5 and U6 (3x3 convolutions, linear with nothing between them and V either) join
+        that convolution: row U's merged input to the 3 channels in one pass (`ops.conv_chain_same`: the three kernels
+        composed into one 7x7 kernel, a matrix product to its 147 taps and shifted sums, the cells near the border by
+        the chain itself), a fraction of the three convolutions' arithmetic."""
         if self.head == "gru":
             return self.dense_stages(bev_features, training)
         k_grid = self.head_y.composed_with(self.head_z)[0]
-        if not compile_lib.fast_convolutions():
+        if not self.plan.v_with_head:
             return ops.dense_last_axis(tf.cast(self.dense_stages(bev_features, training), tf.float32), k_grid)
         with tf.name_scope(self.conv_v.name):
             kernel_v = tf.cast(self.conv_v.kernel, tf.float32)  # [3, 3, C_U, C_V]
             kernel = ops.dense_last_axis(kernel_v, tf.cast(k_grid, tf.float32))  # [3, 3, C_U, 3]
-        if self.conv_dtype != "float32" or (training and self.compile_mode != "xla"):
+        if not self.plan.decoder_chain:
             return tf.nn.conv2d(tf.cast(self.unet(bev_features, training), tf.float32), kernel, 1, "SAME")
         last = self.upsample_skips[-1]
         u4 = self.unet(bev_features, training, merged_last=True)
@@ -239,30 +314,29 @@ class FastFlow3D(keras.Model):
 
     def unet(self, bev_features, training=False, merged_last=False):
         """Rows C-U: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> row U's
-        output [B,H,W,C_U] in `conv_dtype`; with `merged_last`, what row U's U5 convolves (`UpsampleSkip.merged`)."""
+        output [B,H,W,C_U] in `conv_dtype`; with `merged_last`, what row U's U5 convolves (`UpsampleSkip.merged`).
+        `plan.remat_encoder`: training recomputes each encoder stage's activations in the backward pass;
+        `plan.u6_into_next_u1`: rows S and T compute the next block's U1 with their U6 (`UpsampleSkip.into_next`)."""
         x = tf.cast(bev_features, self.conv_dtype)
         skips = [x]
         for stage in self.encoder_stages:
-            if training and self.remat_encoder:
+            if training and self.plan.remat_encoder:
                 x = _rematerialized_stage(stage, x)
             else:
                 for block in stage:
                     x = block(x, training=training)
             skips.append(x)
-
-        def both(t):  # [2B,h,w,c] -> [B,h,w,2c], t0 first (split: its gradient is a concat, no zero-filled grids)
-            return tf.concat(tf.split(t, 2, axis=0), -1)
-
         # skips: B, F, L, R (paper rows); decoder S(R*, L*), T(S, F*), U(T, B*), V(U).
         s, t, u = self.upsample_skips
-        if not compile_lib.fast_convolutions():
+        both = _both_clouds
+        if not self.plan.u6_into_next_u1:
             x = t([s([both(skips[3]), both(skips[2])]), both(skips[1])])
             if merged_last:
                 with tf.name_scope(u.name):
                     return u.merged([x, both(skips[0])])
             return u([x, both(skips[0])])
-        # S's and T's outputs are read only by the next block's U1: each block computes that U1 itself
-        # (`UpsampleSkip.into_next`). (Methods called directly: each in its row's name scope, as a call would be.)
+        # S's and T's outputs are read only by the next block's U1: each block computes that U1 itself.
+        # (Methods called directly: each in its row's name scope, as a call would be.)
         with tf.name_scope(s.name):
             u1_of_t = s.into_next([both(skips[3]), both(skips[2])], t)
         with tf.name_scope(t.name):
@@ -284,10 +358,8 @@ class FastFlow3D(keras.Model):
         head's float32."""
         valid = encoded["point_valid_t0"]
         if self.head == "gru":
-            bev_t0, bev_tm1 = tf.split(encoded["bev_features"], 2, axis=0)
-            flow = self.head_gru.decode([bev_t0, bev_tm1, grid], encoded["point_rows_t0"],
-                                        encoded["pillar_ids_t0"], valid, encode=self._point_offsets)
-            return {"flow_mps": flow, "point_valid": valid}
+            return self._gru_flow(encoded["bev_features"], grid, encoded["point_rows_t0"], encoded["pillar_ids_t0"],
+                                  valid)
         bias = self.head_y.composed_with(self.head_z)[3]
         flow = self.head_y.ungrid(grid, encoded["pillar_ids_t0"]) + encoded["point_flow_t0"] + bias
         flow = tf.where(valid[..., None], flow, tf.zeros_like(flow))
@@ -315,8 +387,14 @@ class FastFlow3D(keras.Model):
                 "point_feature_dim": self.point_feature_dim, "encoder_widths": self.encoder_widths,
                 "encoder_depths": self.encoder_depths, "decoder_dims": self.decoder_dims,
                 "head_hidden_dim": self.head_hidden_dim, "zero_init_output": self.zero_init_output,
-                "compile_mode": self.compile_mode, "point_chunk_size": self.point_chunk_size, "head": self.head,
-                "gru_iterations": self.gru_iterations, "remat_encoder": self.remat_encoder}
+                "plan": self.plan.to_dict(), "point_chunk_size": self.point_chunk_size, "head": self.head,
+                "gru_iterations": self.gru_iterations}
+
+
+def _both_clouds(t):
+    """[2B,h,w,c] (t0 samples first) -> [B,h,w,2c], the two clouds' layers concatenated depth-wise, t0 first (split:
+    its gradient is a concat, no zero-filled grids)."""
+    return tf.concat(tf.split(t, 2, axis=0), -1)
 
 
 def _rematerialized_stage(stage: list, x):
@@ -348,38 +426,28 @@ def model_kwargs(cfg: ExperimentConfig) -> dict:
                 y_range_m=g.y_range_m, z_range_m=g.z_range_m, point_feature_dim=m.point_feature_dim,
                 encoder_widths=m.encoder_widths, encoder_depths=m.encoder_depths, decoder_dims=m.decoder_dims,
                 head_hidden_dim=m.head_hidden_dim, zero_init_output=m.zero_init_output, head=m.head,
-                gru_iterations=m.gru_iterations, remat_encoder=m.remat_encoder)
+                gru_iterations=m.gru_iterations)
 
 
-def build_model(cfg: ExperimentConfig, compile_mode: str | None = None,
-                point_chunk_size: int | None = None, job: str = "inference") -> FastFlow3D:
+def build_model(cfg: ExperimentConfig, compile_mode: str | None = None, point_chunk_size: int | None = None,
+                job: str = "inference", plan: plan_lib.ExecutionPlan | None = None) -> FastFlow3D:
     """The model of a config, with its variables created (so count_params works before the first call).
 
-    `compile_mode` overrides `cfg.model.compile`; "auto" is resolved for the visible devices and `job` ("train" for
-    the Trainer's model, "inference" otherwise; `compile_lib.resolve_compile_mode`), and logged.
-    `cfg.model.mixed_precision` is resolved for that mode, the device and the CPU's flags
-    (`compile_lib.resolve_precision`, logged: "model.mixed_precision=auto -> bfloat16 (AMD CPU has avx512_bf16; ...)").
-    `point_chunk_size` overrides the point encoder's chunk (default `ops.POINT_CHUNK`; tests take a small one).
+    Its execution plan is `plan`, else the config's for `job` ("train" for the Trainer's model, "inference"
+    otherwise) on the visible device (`plan_lib.resolve`; `compile_mode` overrides `cfg.model.compile`), logged:
+    "model.compile=auto -> hybrid for inference", "model.mixed_precision=auto -> bfloat16 (...)", "execution plan:
+    ...". `point_chunk_size` overrides the point encoder's chunk (default `ops.POINT_CHUNK`; tests take a small one).
     """
-    m = cfg.model
-    requested = m.compile if compile_mode is None else compile_mode
-    resolved = compile_lib.resolve_compile_mode(requested, job=job)
-    _LOG.info("model.compile=%s -> %s for %s (%s)", requested, resolved, job, compile_lib.describe(resolved))
-    precision, reason = compile_lib.resolve_precision(m.mixed_precision, resolved)
-    _LOG.info("model.mixed_precision=%s -> %s (%s; %s)", str(m.mixed_precision).lower(), precision, reason,
-              compile_lib.describe_precision(precision))
-    previous = keras.config.dtype_policy()
-    # bfloat16: the dense stages compute in bfloat16 with float32 variables (no loss scaling needed: bfloat16 has
-    # float32's exponent range); they take the policy that is global while they are constructed.
-    keras.config.set_dtype_policy("mixed_bfloat16" if precision == "bfloat16" else "float32")
-    try:
-        # The model itself stays float32 so that it does not cast the input points (only its layers compute in
-        # the mixed policy).
-        model = FastFlow3D(**model_kwargs(cfg), compile_mode=resolved,
-                           point_chunk_size=ops.POINT_CHUNK if point_chunk_size is None else point_chunk_size,
-                           dtype="float32")
-    finally:
-        keras.config.set_dtype_policy(previous)
+    if plan is None:
+        plan, why = plan_lib.resolve(cfg.model, job=job, compile_mode=compile_mode)
+        _LOG.info(why["compile"])
+        _LOG.info(why["precision"])
+    _LOG.info("execution plan: %s", plan.describe())
+    # The model itself stays float32 so that it does not cast the input points (its dense layers compute in the
+    # plan's precision).
+    model = FastFlow3D(**model_kwargs(cfg), plan=plan,
+                       point_chunk_size=ops.POINT_CHUNK if point_chunk_size is None else point_chunk_size,
+                       dtype="float32")
     # Variables from the configuration, without a forward pass: an eager dummy forward would allocate full-size
     # grids (~0.75 GB at 512 x 512) that the allocator then keeps for the life of the process.
     model.build()

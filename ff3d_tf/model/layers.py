@@ -10,7 +10,6 @@ import keras
 import tensorflow as tf
 
 from ff3d_tf import internals
-from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.model import ops
 
 _PKG = "ff3d_tf"
@@ -224,6 +223,14 @@ class PointEncoder(keras.layers.Layer):
             projected.append(rows)
         return (grids[0], projected[0]) if single else (grids, projected)
 
+    def point_features(self, encodings, point_valid, training=False):
+        """Row A as the table lists it, for the table forward: the 8-D encodings [B,N,8] of the clouds (a list, with
+        their validity [B,N]; one set of BN statistics over all of them) -> their point features [B,N,C] (float32,
+        0 where invalid). `call` computes the same chunk by chunk, scattered into the grid as it goes."""
+        normalized = self.norm(list(encodings), list(point_valid), training=training)
+        features = [tf.nn.relu(self.dense(x)) for x in normalized]
+        return [tf.where(v[..., None], f, tf.zeros_like(f)) for f, v in zip(features, point_valid)]
+
     def _encode_and_scatter(self, points, point_valid, pillar_ids, normalizer, projection, encode):
         """One cloud: grid [B,H,W,C] (row B: segment sums over flat pillar ids) and, with a projection kernel
         [C + 8, U], the projected features [B,N,U]."""
@@ -261,27 +268,25 @@ class PointEncoder(keras.layers.Layer):
 @keras.saving.register_keras_serializable(package=_PKG)
 class Conv2D(keras.layers.Conv2D):
     """Keras's Conv2D (the same weights, names and config) with two ways of computing it that XLA's CPU backend runs
-    faster, each equal to the plain convolution up to float rounding:
+    faster, each equal to the plain convolution up to float rounding, chosen by the execution plan
+    (`ff3d_tf.model.plan`; `FastFlow3D` sets them on its layers when it is built; both off by default):
 
-      - a 1x1 kernel with stride 1 is a matrix product over the last axis (`ops.dense_last_axis`), which XLA's CPU
-        backend computes faster than the same product written as a convolution (rows U1, U3);
-      - with `strided_gradients_by_phases` (set by `FastFlow3D` per compile mode and device,
-        `compile.strided_gradients_by_phases`), a 3x3 stride-2 kernel computes its gradients as stride-1
-        convolutions (`ops.conv2d_stride2`; rows C, G, M).
-
-    Both are left out while `compile.convolution_forms` is "plain".
+      - `matmul_1x1`: a 1x1 kernel with stride 1 is a matrix product over the last axis (`ops.dense_last_axis`),
+        which XLA's CPU backend computes faster than the same product written as a convolution (rows U1, U3);
+      - `stride2_phase_gradients`: a 3x3 stride-2 kernel computes its gradients as stride-1 convolutions
+        (`ops.conv2d_stride2`; rows C, G, M).
     """
 
-    strided_gradients_by_phases = False
+    matmul_1x1 = False
+    stride2_phase_gradients = False
 
     def convolution_op(self, inputs, kernel):
-        if not compile_lib.fast_convolutions():
-            return super().convolution_op(inputs, kernel)
         one = (1, 1)
-        if tuple(kernel.shape[:2]) == one and tuple(self.strides) == one and tuple(self.dilation_rate) == one:
+        if (self.matmul_1x1 and tuple(kernel.shape[:2]) == one and tuple(self.strides) == one and
+                tuple(self.dilation_rate) == one):
             return ops.dense_last_axis(inputs, kernel[0, 0])
-        if self.strided_gradients_by_phases and ops.stride2_by_phases_applies(inputs.shape, kernel.shape,
-                                                                               self.strides, self.padding):
+        if self.stride2_phase_gradients and ops.stride2_by_phases_applies(inputs.shape, kernel.shape, self.strides,
+                                                                          self.padding):
             return ops.conv2d_stride2(inputs, kernel)
         return super().convolution_op(inputs, kernel)
 
@@ -302,7 +307,8 @@ class ConvBlock(keras.layers.Layer):
     def __init__(self, filters, strides=1, **kwargs):
         super().__init__(**kwargs)
         self.filters, self.strides = int(filters), int(strides)
-        # Inference only: the BatchNorm folded into the convolution (`fold_batch_norm`); set by exports that ask for it.
+        # Inference only: the BatchNorm folded into the convolution (`_folded`); the execution plan's field, set by
+        # `FastFlow3D` when it is built.
         self.fold_batch_norm = False
         self.conv = Conv2D(self.filters, 3, strides=self.strides, padding="same", use_bias=False,
                            kernel_initializer="glorot_uniform", name="conv")
@@ -362,15 +368,6 @@ class ConvBlock(keras.layers.Layer):
 
     def get_config(self):
         return {**super().get_config(), "filters": self.filters, "strides": self.strides}
-
-
-def fold_batch_norms(model, enabled: bool = True) -> int:
-    """Sets `ConvBlock.fold_batch_norm` on every ConvBlock of `model` (its inference forward then convolves with the
-    BatchNorm folded in); returns how many blocks there are."""
-    blocks = [layer for layer in model._flatten_layers(include_self=False) if isinstance(layer, ConvBlock)]
-    for block in blocks:
-        block.fold_batch_norm = enabled
-    return len(blocks)
 
 
 @keras.saving.register_keras_serializable(package=_PKG)
@@ -437,46 +434,41 @@ class UpsampleSkip(keras.layers.Layer):
 
 @keras.saving.register_keras_serializable(package=_PKG)
 class UngridHead(keras.layers.Layer):
-    """Table rows W, X, Y: Ungrid (each t0 point takes its pillar's flow embedding), concatenation with the point
-    feature, and the linear layer Y.
+    """Table row Y, the linear layer on row X (row W's cell embedding of each t0 point, concatenated with its point
+    feature), with row W's gather (`ungrid`) beside it.
 
     Reading of row Y's 4,384 parameters: Linear(136 -> 32) with bias = 136 x 32 + 32, whose input is X (W's 64-d
     cell embedding + A's 64-d point feature = the table's 128) plus the point's 8-D encoding (raw geometry beside the
     learned features); no BN, no nonlinearity, as the table says. This is the reading that, with row A's, reproduces
     the 5,233,571 total.
 
-    concat([w, a, e]) @ K = w @ K_w + a @ K_a + e @ K_e, so the grid part is projected to 32 channels on the grid first
-    and 32 (not 64) values are gathered per point: the same function with far less per-point memory traffic. The
-    model goes further (`composed_with`): rows Y and Z are one linear map, whose grid part leaves 3 values per cell
-    to gather and whose point part the point encoder applies to each chunk of features.
+    concat([w, a, e]) @ K = w @ K_w + a @ K_a + e @ K_e (`split_kernel`), and rows Y and Z are linear with nothing
+    between them (`composed_with`): the fused forward projects the grid part to 3 values per cell before the gather
+    and the point part inside row A's chunk loop, instead of building X.
 
-    Call: [bev [B,H,W,Cg], point_features [B,N,Cp] (row A), encoding [B,N,8] (`Pillarize`), pillar_ids [B,N]].
-    Returns: [B,N,U]; rows of invalid points are arbitrary (the caller masks them).
+    Args:
+      units: U, row Y's width.
+      grid_channels, point_channels: the widths of X's cell embedding (row V's) and point feature (row A's) parts.
+    Call: x [B,N,grid_channels + point_channels + 8] (row X) -> [B,N,U].
     """
 
-    def __init__(self, units=32, **kwargs):
+    def __init__(self, units=32, grid_channels=64, point_channels=64, **kwargs):
         super().__init__(**kwargs)
-        self.units = int(units)
+        self.units, self.grid_channels, self.point_channels = int(units), int(grid_channels), int(point_channels)
 
     def build(self, input_shape):
-        """input_shape: (grid [.., Cg], point features [.., Cp], encoding [.., 8][, pillar ids])."""
-        grid_shape, point_shape, encoding_shape = input_shape[0], input_shape[1], input_shape[2]
-        self.grid_channels = int(grid_shape[-1])
-        self.point_channels = int(point_shape[-1])
-        fan_in = self.grid_channels + self.point_channels + int(encoding_shape[-1])
+        fan_in = self.grid_channels + self.point_channels + 8
+        if input_shape[-1] is not None and int(input_shape[-1]) != fan_in:
+            raise ValueError(f"UngridHead: row X has {fan_in} channels (cell {self.grid_channels}, point "
+                             f"{self.point_channels}, encoding 8), got {input_shape[-1]}")
         self.kernel = self.add_weight(name="kernel", shape=(fan_in, self.units), initializer="glorot_uniform")
         self.bias = self.add_weight(name="bias", shape=(self.units,), initializer="zeros")
 
-    def call(self, inputs):
-        """inputs: bev [B,H,W,Cg], point_features [B,N,Cp], encoding [B,N,8], pillar_ids [B,N] -> [B,N,U]."""
-        bev, point_features, encoding, pillar_ids = inputs
-        k_grid, k_point, k_enc = self.split_kernel(tf.cast(self.kernel, bev.dtype))
-        point_term = (ops.dense_last_axis(tf.cast(point_features, bev.dtype), k_point) +
-                      ops.dense_last_axis(tf.cast(encoding, bev.dtype), k_enc) + tf.cast(self.bias, bev.dtype))
-        return self.ungrid(ops.dense_last_axis(bev, k_grid), pillar_ids) + point_term  # [B,N,U]
+    def call(self, x):
+        return ops.dense_last_axis(x, tf.cast(self.kernel, x.dtype)) + tf.cast(self.bias, x.dtype)
 
     def split_kernel(self, kernel):
-        """A kernel [Cg + Cp + 8, U'] as the parts that multiply the grid, point feature and encoding inputs."""
+        """A kernel [Cg + Cp + 8, U'] as the parts that multiply the cell embedding, point feature and encoding."""
         g, p = self.grid_channels, self.point_channels
         return kernel[:g], kernel[g:g + p], kernel[g + p:]
 
@@ -496,4 +488,5 @@ class UngridHead(keras.layers.Layer):
         return (*self.split_kernel(kernel), bias)
 
     def get_config(self):
-        return {**super().get_config(), "units": self.units}
+        return {**super().get_config(), "units": self.units, "grid_channels": self.grid_channels,
+                "point_channels": self.point_channels}

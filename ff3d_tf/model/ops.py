@@ -18,6 +18,17 @@ POINT_CHUNK = 1 << 16
 ONE_CHUNK = (1 << 31) - 1
 
 
+def pillar_sums(point_features, pillar_ids, num_pillars_y: int, num_pillars_x: int):
+    """Row B, Snap-To-Grid: each pillar sums the features of its points. point_features [B,N,C], pillar_ids [B,N]
+    flat over the batch (b*H*W + row*W + col), B*H*W for a point in no pillar: one extra segment takes those, and is
+    dropped. Returns [B,H,W,C]."""
+    batch, channels = tf.shape(point_features)[0], point_features.shape[-1]
+    cells = batch * num_pillars_y * num_pillars_x
+    sums = tf.math.unsorted_segment_sum(tf.reshape(point_features, [-1, channels]), tf.reshape(pillar_ids, [-1]),
+                                        cells + 1)  # [B*H*W + 1, C]
+    return tf.reshape(sums[:cells], [batch, num_pillars_y, num_pillars_x, channels])
+
+
 def dense_last_axis(x, kernel):
     """x [..., C] @ kernel [C, U] as one 2-D matmul (no tensordot transposes: inside the point-chunk loop those
     need compile-time shapes under XLA)."""

@@ -3,8 +3,8 @@
 `training_files` applies `data.max_training_segments` (the data-size study's cap: the first N files); `training_dataset`
 is the repeated, shuffled, augmented (`data.augment_*`), batched and bucketed stream, read here or by the workers of
 a tf.data service (`ff3d_tf.training.data_service`), with the record extras the loss reads (`loss_extras`). Every
-reader of the training input (the Trainer, tools/benchmark_input.py, tools/benchmark_training.py) goes through them,
-so each trains on the same files in the same order.
+reader of the training input (the Trainer, the lab's lab/tools/benchmark_input.py and lab/tools/benchmark_training.py)
+goes through them, so each trains on the same files in the same order.
 """
 from __future__ import annotations
 

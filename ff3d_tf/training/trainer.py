@@ -35,6 +35,7 @@ from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
 from ff3d_tf.checkpoints import restore_newest_intact
 from ff3d_tf.model import build_model
+from ff3d_tf.model import plan as plan_lib
 from ff3d_tf.model import step as step_lib
 from ff3d_tf.model.forward import ModelPredictor
 from ff3d_tf.model.step import make_optimizer
@@ -88,7 +89,8 @@ class Trainer:
     the end (TF's multi-worker checkpointing pattern), and all of them restore from the chief's checkpoints."""
 
     def __init__(self, cfg: ExperimentConfig, model_dir: str, train_files: list[str], val_files: list[str] = (),
-                 strategy: tf.distribute.Strategy | None = None, log_fn=print, data_service_address: str | None = None):
+                 strategy: tf.distribute.Strategy | None = None, log_fn=print, data_service_address: str | None = None,
+                 plan: plan_lib.ExecutionPlan | None = None):
         self.cfg, self.model_dir = cfg, model_dir
         self.train_files, self.val_files = training_files(train_files, cfg), list(val_files)
         self.strategy = strategy or make_strategy(cfg.train.peer_timeout_s, cfg.train.peer_join_timeout_s)
@@ -105,12 +107,14 @@ class Trainer:
         self._heap_trimmed = False  # `_after_step`
         keras.utils.set_random_seed(cfg.train.seed)  # same initial weights for the same seed (reproducible runs)
         with self.strategy.scope():
-            self.model = build_model(cfg, job="train")  # model.compile=auto chooses for training
+            # model.compile=auto chooses for training; `plan` (default: the config's for training here) says how.
+            self.model = build_model(cfg, job="train", plan=plan)
             self.optimizer = make_optimizer(cfg)
             self.optimizer.build(self.model.trainable_variables)
             self.global_step = tf.Variable(0, dtype=tf.int64, trainable=False, name="step")
             self.nonfinite_total = tf.Variable(0, dtype=tf.int64, trainable=False, name="nonfinite_total")
             self.nonfinite_in_row = tf.Variable(0, dtype=tf.int64, trainable=False, name="nonfinite_in_row")
+        self.log(f"execution plan: {self.model.plan.describe()}")
         self.checkpoint = tf.train.Checkpoint(model=self.model, optimizer=self.optimizer, step=self.global_step,
                                               nonfinite_total=self.nonfinite_total,
                                               nonfinite_in_row=self.nonfinite_in_row)
@@ -311,6 +315,7 @@ class Trainer:
             if self.is_chief:
                 tf.io.gfile.makedirs(self.model_dir)  # local or gs:// alike
                 cfg.save(os.path.join(self.model_dir, "config.yaml"))
+                plan_lib.save(self.model.plan, self.model_dir)
             start_step = self._steps_done = int(self.global_step.numpy())
             if start_step >= num_steps:
                 self.log(f"already at step {start_step} >= {num_steps}; nothing to do")

@@ -1,8 +1,8 @@
-"""The training step's portable programs (written by `xla_step_export`): loading, running, checking and timing them
-with JAX only, on the default JAX device (tools/run_xla.py, tools/gpu_check.sh).
+"""The training step's portable programs (written by `xla_step_export`): loading, running and checking them with JAX
+only, on the default JAX device (the lab times them: `lab.training.xla_step_timing`).
 
 Nothing here imports TensorFlow or a module that does: a machine with JAX/XLA and no TensorFlow (a GPU box) keeps the
-training state on its device and times steps from an export directory alone (its layout, manifest and weights:
+training state on its device and runs steps from an export directory alone (its layout, manifest and weights:
 `ff3d_tf.xla_export_dir`). A training-step artifact takes the state (weights, BatchNorm statistics, Adam's slots,
 iteration count), the six model inputs and the labels of `TRAIN_LABEL_KEYS`, and returns the new state, the loss and
 the gradients' global norm (`xla_step_export.train_step_fn`).
@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ff3d_tf import bench, xla_program
-from ff3d_tf.xla_export_dir import ExportRun, describe_check, load_artifact, random_inputs
+from ff3d_tf import xla_export_dir, xla_program
+from ff3d_tf.xla_export_dir import load_artifact
 
 TRAIN_LABEL_KEYS = ("flow_mps_t0", "class_id_t0")
 
@@ -30,8 +30,8 @@ def load_train_step(export_dir: str, entry: dict, manifest: dict):
 
 
 def random_labels(entry: dict, rng: np.random.Generator) -> list[np.ndarray]:
-    """`bench.random_labels` for `random_inputs`' t0 clouds, in `TRAIN_LABEL_KEYS` order."""
-    labels = bench.random_labels(rng, entry["points"], entry["padded_points"], entry["batch_size"])
+    """`xla_export_dir.random_labels` for `xla_export_dir.random_inputs`' t0 clouds, in `TRAIN_LABEL_KEYS` order."""
+    labels = xla_export_dir.random_labels(rng, entry["points"], entry["padded_points"], entry["batch_size"])
     return [labels[k] for k in TRAIN_LABEL_KEYS]
 
 
@@ -75,66 +75,3 @@ def check_train_step(step: CompiledTrainStep, entry: dict, manifest: dict, ref: 
     want_loss, want_norm = float(ref["train/out/loss"]), float(ref["train/out/grad_norm"])
     return {"loss_rel_diff": abs(loss - want_loss) / abs(want_loss),
             "grad_norm_rel_diff": abs(grad_norm - want_norm) / abs(want_norm)}
-
-
-def time_train_step(step: CompiledTrainStep, batch: list[np.ndarray], runs: int, warmup: int) -> dict:
-    """Median, mean and min time (ms) of `runs` steps after `warmup`, batch resident on the device (as after a
-    prefetch), and what that means for input: ms and pairs/s per pair of clouds."""
-    device_batch = step.on_device(batch)
-    losses = []
-
-    def one_step():
-        loss, _ = step(device_batch)
-        losses.append(loss.block_until_ready())
-
-    times = bench.summary([r["ms"] for r in bench.measure(one_step, runs, warmup)])
-    losses = [float(loss) for loss in losses[warmup:]]
-    b = int(batch[0].shape[0])
-    return {**times, "ms_per_pair": times["median_ms"] / b, "pairs_per_s": 1e3 * b / times["median_ms"],
-            "runs": runs, "warmup": warmup, "loss_first": losses[0], "loss_last": losses[-1],
-            "compile_s": step.compile_s}
-
-
-class TrainStepTiming:
-    """The training-step artifacts of a `ff3d_tf.xla_export_dir.run_export`: each from the initial state, checked
-    against the reference, then `runs` steps after `warmup` (`time_train_step`); rows under "train_step"."""
-    kind, manifest_key, result_key = "train_step", "train_artifacts", "train_step"
-
-    def __init__(self, runs: int, warmup: int):
-        self.runs, self.warmup = runs, warmup
-
-    def time(self, run: ExportRun, entry: dict) -> dict:
-        step = CompiledTrainStep(load_train_step(run.export_dir, entry, run.manifest),
-                                 initial_train_state(run.weights, run.manifest))
-        check = check_train_step(step, entry, run.manifest, run.reference)
-        batch = random_inputs(run.manifest, entry, run.rng) + random_labels(entry, run.rng)
-        row = {"points": entry["points"], "padded_points": entry["padded_points"], "batch_size": entry["batch_size"],
-               "precision": entry["precision"], **time_train_step(step, batch, self.runs, self.warmup),
-               "reference": check}
-        del step  # its state (weights and Adam slots) leaves the device before the next artifact
-        return row
-
-    def describe(self, row: dict) -> str:
-        return (f"train step {row['batch_size']} x {row['points']} points ({row['precision']}): median "
-                f"{row['median_ms']:.2f} ms ({row['ms_per_pair']:.2f} ms per pair), loss {row['loss_first']:.4f} -> "
-                f"{row['loss_last']:.4f}, compile {row['compile_s']:.1f} s" + describe_check(row["reference"]))
-
-    def table(self, result: dict) -> list[str]:
-        """The training-step rows and skipped entries (no lines when the run has neither)."""
-        skipped = [row for row in result["skipped"] if row.get("kind") == self.kind]
-        if not result.get(self.result_key) and not skipped:
-            return []
-        lines = ["", "Training step (forward, loss, backward, Adam; batch on the device; state updated in place)", "",
-                 "| batch x points | precision | median ms | min ms | ms per pair | pairs/s | loss first -> last |",
-                 "|---|---|---:|---:|---:|---:|---|"]
-        for row in result.get(self.result_key, []):
-            lines.append(f"| {row['batch_size']} x {row['points']:,} | {row['precision']} | {row['median_ms']:.2f} | "
-                         f"{row['min_ms']:.2f} | {row['ms_per_pair']:.2f} | {row['pairs_per_s']:.1f} | "
-                         f"{row['loss_first']:.4f} -> {row['loss_last']:.4f} |")
-        for row in skipped:
-            lines.append(f"| {row['batch_size']} x {row['points']:,} | {row['precision']} | skipped: "
-                         f"{row['reason']} | | | | |")
-        return lines
-
-    def check_name(self, row: dict) -> str:
-        return f"train step {row['batch_size']} x {row['points']:,} {row['precision']}"

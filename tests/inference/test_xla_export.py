@@ -13,7 +13,7 @@ import tensorflow as tf  # noqa: E402
 from conftest import ROOT, tiny_model_off_initial_values  # noqa: E402
 from no_tensorflow import run_without_tf  # noqa: E402
 from ff3d_tf import xla_export_dir  # noqa: E402
-from ff3d_tf.inference import xla_artifact, xla_timing  # noqa: E402
+from ff3d_tf.inference import xla_artifact  # noqa: E402
 from ff3d_tf.inference.xla_export import export_forward  # noqa: E402
 from ff3d_tf.model import build_model  # noqa: E402
 from ff3d_tf.schema import MODEL_INPUT_KEYS  # noqa: E402
@@ -132,25 +132,9 @@ def test_bad_exports_are_named(exported_tiny, tmp_path):
         export_forward(None, None, [10], str(tmp_path / "x"), precisions=("fp8",))
 
 
-def test_latency_table_beside_the_paper():
-    result = {"device": "H200", "platform": "gpu", "jax": "0.11.2", "skipped": [],
-              "latency": [{"points": 32000, "precision": "float32", "median_ms": 4.0, "mean_ms": 4.1, "min_ms": 3.9,
-                           "median_host_ms": 5.0},
-                          {"points": 1000000, "precision": "tf32", "median_ms": 12.5, "mean_ms": 12.6,
-                           "min_ms": 12.0, "median_host_ms": 15.0},
-                          {"points": 5000, "precision": "float32", "median_ms": 1.0, "mean_ms": 1.0, "min_ms": 1.0,
-                           "median_host_ms": 1.0}]}
-    rows = xla_timing.latency_table(result).splitlines()[4:]
-    # 49.3 / 4.0 = 12.3x (target 10x met); 98.1 / 12.5 = 7.8x (not met); 5,000 points: no paper figure.
-    assert rows[0] == "| 32,000 | float32 | 4.00 | 4.10 | 3.90 | 5.00 | 49.3 | 12.3x | yes |"
-    assert rows[1] == "| 1,000,000 | tf32 | 12.50 | 12.60 | 12.00 | 15.00 | 98.1 | 7.8x | no |"
-    assert rows[2].endswith("| - | - | - |")
-
-
 def test_predictor_runs_a_pair_on_the_smallest_artifact_that_holds_it(exported_tiny, tiny_config):
     """`XlaPredictor` (the `ff3d_tf.predictor.Predictor` of an export): a pair padded to 800 points runs on the 1024
     artifact (224 more masked points change no flow); one of 1600 fits no artifact (1024, 1536) and is named."""
-    from ff3d_tf import bench
     from ff3d_tf.predictor import Predictor
     model, out_dir, _ = exported_tiny
     predictor = xla_artifact.XlaPredictor(out_dir)
@@ -158,13 +142,13 @@ def test_predictor_runs_a_pair_on_the_smallest_artifact_that_holds_it(exported_t
     g = tiny_config.grid
     bounds = (g.x_range_m, g.y_range_m, g.z_range_m)
     rng = np.random.default_rng(5)
-    batch = {k: tf.constant(v) for k, v in bench.random_clouds(rng, 600, 800, bounds).items()}
+    batch = {k: tf.constant(v) for k, v in xla_export_dir.random_clouds(rng, 600, 800, bounds).items()}
     flow, valid = predictor.predict(batch, {"num_points_t0": 600})
     want = model(batch, training=False)
     assert flow.shape == (600, 3) and valid.shape == (600,) and valid.all()
     np.testing.assert_array_equal(valid, want["point_valid"].numpy()[0, :600])
     np.testing.assert_allclose(flow, want["flow_mps"].numpy()[0, :600], rtol=0, atol=1e-4)
     assert list(predictor._compiled) == [xla_artifact.artifact_name(1024, "float32")]
-    big = bench.random_clouds(rng, 1600, 1600, bounds)
+    big = xla_export_dir.random_clouds(rng, 1600, 1600, bounds)
     with pytest.raises(ValueError, match="a pair padded to 1600 points is larger than every artifact"):
         predictor.predict(big, {"num_points_t0": 1600})

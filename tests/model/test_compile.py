@@ -56,14 +56,13 @@ def test_config_switch_and_auto(tiny_config, caplog):
     assert model.conv_dtype == "float32"
     assert replace_config(tiny_config, {"model.compile": "xla"}).model.jit_compile
     with pytest.raises(ValueError, match="resolve 'auto'"):
-        fastflow3d.FastFlow3D(**fastflow3d.model_kwargs(tiny_config), compile_mode="auto")
+        fastflow3d.FastFlow3D(**fastflow3d.model_kwargs(tiny_config), plan={"compile_mode": "auto"})
 
 
 def _hybrid_programs():
     """How many XLA programs compile mode hybrid's forward launches: the point encoding (`compile_lib.hybrid_encode`;
-    per cloud, the default: each cloud's pillar cells and each cloud's encoding and scatter; or one program for
-    both) and the head."""
-    return {"per_cloud": 4, "one": 1}[compile_lib.hybrid_point_programs] + 1
+    per cloud, the plan's default: each cloud's pillar cells and each cloud's encoding and scatter) and the head."""
+    return 4 + 1
 
 
 def _xla_functions(graph_def):

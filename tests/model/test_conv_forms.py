@@ -1,29 +1,18 @@
-"""The model's convolution forms (`compile.convolution_forms`): the stride-2 convolution whose gradients are computed
+"""The model's convolution forms (fields of the execution plan, `ff3d_tf.model.plan`): the stride-2 convolution whose gradients are computed
 phase by phase (`ops.conv2d_stride2`), the 1x1 convolution as a matrix product and the choice between them
 (`layers.Conv2D`), a chain of convolutions as one composed convolution (`ops.conv_chain_same`), rows U5-V composed
 with the head's grid part (`FastFlow3D.grid_stages`) and each decoder block's U6 with the next block's U1
-(`layers.UpsampleSkip.into_next`). Each against TensorFlow's own convolutions and their gradients,
-or against the model's plain forms."""
-import contextlib
-
+(`layers.UpsampleSkip.into_next`). Each against TensorFlow's own convolutions and their gradients, or against the
+model's plain forms (the whole forward against the table's: tests/model/test_plan.py)."""
 import keras
 import numpy as np
 import pytest
 import tensorflow as tf
 
 from ff3d_tf.model import build_model
-from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.model import layers as L
 from ff3d_tf.model import ops
-
-
-@contextlib.contextmanager
-def _forms(value):
-    previous, compile_lib.convolution_forms = compile_lib.convolution_forms, value
-    try:
-        yield
-    finally:
-        compile_lib.convolution_forms = previous
+from ff3d_tf.model.plan import resolve
 
 
 def _value_and_gradients(conv, x, kernel, dy, jit_compile):
@@ -147,12 +136,12 @@ def _op_types(layer, x):
 @pytest.mark.parametrize("kernel_size,strides,phases", [(1, 1, False), (3, 2, True), (3, 1, False)])
 def test_conv2d_layer_equals_keras_conv2d(kernel_size, strides, phases):
     """`layers.Conv2D` with the weights of Keras's Conv2D: the same output and gradients in every form, and the op it
-    runs: a matrix product for 1x1, the phase-gradient op where asked for, Keras's convolution under "plain"."""
+    runs: a matrix product for 1x1 (`matmul_1x1`), the phase-gradient op where asked for (`stride2_phase_gradients`),
+    Keras's convolution with both off."""
     rng = np.random.default_rng(1)
     x = tf.constant(rng.normal(size=(2, 8, 6, 5)).astype(np.float32))
     keras_conv = keras.layers.Conv2D(4, kernel_size, strides=strides, padding="same", use_bias=False)
     ours = L.Conv2D(4, kernel_size, strides=strides, padding="same", use_bias=False)
-    ours.strided_gradients_by_phases = phases
     keras_conv.build(x.shape)
     ours.build(x.shape)
     ours.set_weights(keras_conv.get_weights())
@@ -165,33 +154,31 @@ def test_conv2d_layer_equals_keras_conv2d(kernel_size, strides, phases):
         return [y.numpy()] + [g.numpy() for g in tape.gradient(loss, [x, layer.kernel])]
 
     want = outputs_and_gradients(keras_conv)
-    for forms in compile_lib.CONVOLUTION_FORMS:
-        with _forms(forms):
-            for g, v in zip(outputs_and_gradients(ours), want):
-                np.testing.assert_allclose(g, v, rtol=1e-5, atol=1e-5 * np.abs(v).max(), err_msg=forms)
-            ops_run = _op_types(ours, x)
-        if forms == "plain" or kernel_size == 3:
+    for forms in (False, True):
+        ours.matmul_1x1, ours.stride2_phase_gradients = forms, forms and phases
+        for g, v in zip(outputs_and_gradients(ours), want):
+            np.testing.assert_allclose(g, v, rtol=1e-5, atol=1e-5 * np.abs(v).max(), err_msg=str(forms))
+        ops_run = _op_types(ours, x)
+        if not forms or kernel_size == 3:
             assert "Conv2D" in ops_run and "MatMul" not in ops_run, forms
         else:
             assert "MatMul" in ops_run and "Conv2D" not in ops_run
-        if forms == "fast" and phases:  # the custom gradient's identity op wraps the phase-gradient convolution
+        if forms and phases:  # the custom gradient's identity op wraps the phase-gradient convolution
             assert "IdentityN" in ops_run
         else:
             assert "IdentityN" not in ops_run
 
 
 def test_strided_gradients_by_phases_where_xla_compiles_on_a_cpu(tiny_config):
-    assert compile_lib.strided_gradients_by_phases("xla", "CPU")
-    assert not compile_lib.strided_gradients_by_phases("xla", "GPU")
-    assert not compile_lib.strided_gradients_by_phases("hybrid", "CPU")
-    assert not compile_lib.strided_gradients_by_phases("none", "CPU")
+    """The plan's rule (`plan.resolve`), and the model's stride-2 convolutions told it."""
+    for mode, device, expected in (("xla", "CPU", True), ("xla", "GPU", False), ("hybrid", "CPU", False),
+                                   ("none", "CPU", False)):
+        assert resolve(tiny_config.model, "train", mode, device)[0].stride2_phase_gradients is expected
     for mode in ("xla", "hybrid"):
         model = build_model(tiny_config, mode)
-        flags = {block.name: block.conv.strided_gradients_by_phases for stage in model.encoder_stages
+        flags = {block.name: block.conv.stride2_phase_gradients for stage in model.encoder_stages
                  for block in stage}
         assert set(flags.values()) == {mode == "xla"}, (mode, flags)
-    with _forms("neither"), pytest.raises(ValueError, match="fast, plain"):
-        compile_lib.fast_convolutions()
 
 
 def _inputs(seed=3, n0=400, n1=380):
@@ -208,11 +195,12 @@ def _inputs(seed=3, n0=400, n1=380):
 
 
 def test_grid_stages_compose_rows_u5_to_v_with_the_head(tiny_config):
-    """With the paper head, `grid_stages` is rows C-V (`dense_stages`) followed by the head's grid kernel: for
-    inference computed as one chain from row U's merged input (U5, U6, V and the head), for training on TensorFlow's
-    kernels (mode none) as row V with the head; the same cell flow as the layers one after the other."""
+    """With the paper head, `grid_stages` is rows C-V (`dense_stages`) followed by the head's grid kernel, computed
+    as one chain from row U's merged input (U5, U6, V and the head: the inference plan's `decoder_chain`); the same
+    cell flow as the layers one after the other, and as the plan without those forms."""
     keras.utils.set_random_seed(4)
     model = build_model(tiny_config, "none")
+    assert model.plan.decoder_chain and model.plan.v_with_head
     bev = tf.constant(np.random.default_rng(5).normal(size=(
         2, tiny_config.grid.num_pillars_y, tiny_config.grid.num_pillars_x,
         tiny_config.model.point_feature_dim)).astype(np.float32))
@@ -222,8 +210,10 @@ def test_grid_stages_compose_rows_u5_to_v_with_the_head(tiny_config):
         got = model.grid_stages(bev, training).numpy()
         assert got.shape == want.shape and got.shape[-1] == 3 and np.abs(want).max() > 0
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
-    with _forms("plain"):
-        np.testing.assert_allclose(model.grid_stages(bev).numpy(), want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+    plain = build_model(tiny_config, plan=model.plan.replace(v_with_head=False, decoder_chain=False,
+                                                              u6_into_next_u1=False, matmul_1x1=False))
+    plain.set_weights(model.get_weights())
+    np.testing.assert_allclose(plain.grid_stages(bev).numpy(), want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
 
 
 def test_upsample_skip_into_next_is_the_next_blocks_u1(tiny_config):
@@ -238,31 +228,3 @@ def test_upsample_skip_into_next_is_the_next_blocks_u1(tiny_config):
     assert want.shape == (1, 8, 8, t.u1.filters) and np.abs(want).max() > 0
     for got in (s.into_next([alpha, beta], t), s.into_next([None, beta], t, u1=s.u1(alpha))):
         np.testing.assert_allclose(got.numpy(), want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
-
-
-def test_training_gradients_of_the_fast_forms_equal_the_plain_ones(tiny_config):
-    """The training step's loss gradient in compile mode xla (every form: phases, matrix products, V composed with
-    the head) against the same model's plain forms: every variable's gradient, up to float rounding."""
-    keras.utils.set_random_seed(6)
-    model = build_model(tiny_config, "xla", point_chunk_size=128)
-    model.head_z.kernel.assign(model.head_z.kernel * 0.1)  # flows of a real size (~1 m/s)
-    inputs = _inputs()
-
-    def gradients():
-        def run(x):
-            with tf.GradientTape() as tape:
-                loss = tf.reduce_sum(tf.square(model(x, training=True, inline_stages=True)["flow_mps"]))
-            return [loss] + tape.gradient(loss, model.trainable_variables)
-        weights = model.get_weights()  # training=True moves the BatchNorm statistics: both runs start alike
-        out = [t.numpy() for t in tf.function(run, jit_compile=True)(inputs)]
-        model.set_weights(weights)
-        return out
-
-    fast = gradients()
-    with _forms("plain"):
-        plain = gradients()
-    assert fast[0] > 0
-    np.testing.assert_allclose(fast[0], plain[0], rtol=1e-5)
-    for g, w, v in zip(fast[1:], plain[1:], model.trainable_variables):
-        assert np.abs(w).max() > 0, v.path
-        np.testing.assert_allclose(g, w, atol=1e-4 * np.abs(w).max() + 1e-7, err_msg=v.path)

@@ -136,9 +136,10 @@ def test_mixed_precision_close_to_float32(tiny_config):
 
 
 def test_flow_equals_the_table_rows_called_one_by_one(tiny_config):
-    """The model evaluates rows A-Z in its own order (head rows Y, Z composed into one linear map, each point's own
-    share of the flow taken while its features are computed); the result equals the layers of the table called one
-    after the other through their public calls, with the [N, C] point features built whole."""
+    """The fused forward evaluates rows A-Z in its own order (head rows Y, Z composed into one linear map, each
+    point's own share of the flow taken while its features are computed); the result equals the layers of the table
+    called one after the other through their public calls, with the [N, C] point features built whole, and the
+    table forward (tests/model/test_plan.py compares the two in every form, with gradients)."""
     model = build_model(tiny_config)
     model.head_z.kernel.assign(model.head_z.kernel * 0.1)  # flows of a real size (~1 m/s), see test_xla_matches_eager
     inputs = _inputs(np.random.default_rng(8), 2, 300, 280)
@@ -147,10 +148,12 @@ def test_flow_equals_the_table_rows_called_one_by_one(tiny_config):
     features = tf.nn.relu(model.point_encoder.dense(model.point_encoder.norm(enc, valid)))  # row A, inference BN
     features = tf.where(valid[..., None], features, 0.0)
     grid_flow_embedding = model.dense_stages(encoded["bev_features"])  # rows C-V
-    expected = model.head_z(model.head_y([grid_flow_embedding, features, enc, ids]))  # rows W-Z
+    row_x = tf.concat([model.head_y.ungrid(grid_flow_embedding, ids), features, enc], -1)  # rows W, X
+    expected = model.head_z(model.head_y(row_x))  # rows Y, Z
     v = valid.numpy()
     assert v.sum() > 400
     np.testing.assert_allclose(model(inputs)["flow_mps"].numpy()[v], expected.numpy()[v], atol=1e-5)
+    np.testing.assert_allclose(model.table_forward(inputs)["flow_mps"].numpy()[v], expected.numpy()[v], atol=1e-5)
 
 
 def test_point_stages_hold_no_per_point_feature_array(tiny_config):

@@ -192,8 +192,7 @@ def test_conv_block_folded_batch_norm_matches_numpy(strides):
     block, (gamma, beta, mean, var) = _conv_block_off_initial_values(x.shape, strides)
     conv = block.conv(x).numpy()
     expected = np.maximum((conv - mean) / np.sqrt(var + 1e-3) * gamma + beta, 0.0)
-    model = keras.Sequential([block])
-    assert L.fold_batch_norms(model) == 1 and block.fold_batch_norm
+    block.fold_batch_norm = True  # as `FastFlow3D` sets it from the plan's fold_batch_norm
     np.testing.assert_allclose(block(x, training=False).numpy(), expected, rtol=1e-5, atol=1e-5)
     unfolded_training = L.ConvBlock(4, strides=strides)
     unfolded_training.build(x.shape)
@@ -250,12 +249,14 @@ def test_upsample_skip():
                    expected_output_shapes=(B, 8, 8, 5))
 
 
-def test_ungrid_head_equals_concatenation_reference():
-    """The split evaluation (grid projected first) equals the table's concat([ungrid, point feature, encoding]) @ K."""
+def test_ungrid_head_is_row_y_on_row_x():
+    """Row Y on row X (W's cell embedding, the point feature, the encoding, concatenated): X @ K + b, and its kernel's
+    parts (`split_kernel`) are the blocks that multiply each part."""
     bev = tf.constant(RNG.normal(0, 1, (B, H, W, 6)).astype(np.float32))
     feats = tf.constant(RNG.normal(0, 1, (B, N, 4)).astype(np.float32))
     enc, valid, ids = _encodings(N, 4)
-    layer, out = run_layer_test(L.UngridHead, dict(units=3), ([bev, feats, enc, ids],),
+    x = tf.concat([L.UngridHead.ungrid(bev, ids), feats, enc], -1)  # W, X
+    layer, out = run_layer_test(L.UngridHead, dict(units=3, grid_channels=6, point_channels=4), (x,),
                                 expected_output_shapes=(B, N, 3))
     kernel, bias = layer.kernel.numpy(), layer.bias.numpy()
     cells = bev.numpy().reshape(B * H * W, 6)
@@ -263,6 +264,11 @@ def test_ungrid_head_equals_concatenation_reference():
     expected = np.concatenate([ungrid, feats.numpy(), enc.numpy()], -1) @ kernel + bias  # X, Y
     v = valid.numpy()
     np.testing.assert_allclose(out[v], expected[v], atol=1e-4)
+    k_grid, k_point, k_enc = layer.split_kernel(kernel)
+    np.testing.assert_allclose(ungrid @ k_grid + feats.numpy() @ k_point + enc.numpy() @ k_enc + bias, expected,
+                               atol=1e-4)
+    with pytest.raises(ValueError, match="row X has 18 channels"):
+        L.UngridHead(units=3, grid_channels=6, point_channels=4).build((None, None, 17))
 
 
 def test_ungrid_head_composed_with_output_layer():
@@ -271,8 +277,9 @@ def test_ungrid_head_composed_with_output_layer():
     bev = tf.constant(RNG.normal(0, 1, (B, H, W, 6)).astype(np.float32))
     feats = tf.constant(RNG.normal(0, 1, (B, N, 4)).astype(np.float32))
     enc, valid, ids = _encodings(N, 5)
-    head, output = L.UngridHead(units=7), keras.layers.Dense(3, bias_initializer="random_normal")
-    expected = output(head([bev, feats, enc, ids]))
+    head = L.UngridHead(units=7, grid_channels=6, point_channels=4)
+    output = keras.layers.Dense(3, bias_initializer="random_normal")
+    expected = output(head(tf.concat([head.ungrid(bev, ids), feats, enc], -1)))
     k_grid, k_point, k_enc, bias = head.composed_with(output)
     got = (head.ungrid(ops.dense_last_axis(bev, k_grid), ids) + ops.dense_last_axis(feats, k_point) +
            ops.dense_last_axis(enc, k_enc) + bias)

@@ -1,4 +1,4 @@
-"""The point encoding split into programs (compile mode hybrid's per-cloud programs, `compile.hybrid_encode`): the
+"""The point encoding split into programs (compile mode hybrid's per-cloud programs, `compile.hybrid_encode`, the plan's `point_programs`): the
 pillar sums equal tf.math.unsorted_segment_sum and a NumPy reference to float32 rounding (empty pillars, masked and
 padded points, repeated ids), in eager, graph and XLA; gradients equal; the clouds' programs depend on nothing of
 each other; the model's forward and gradients equal those of the single program and of no XLA."""
@@ -11,6 +11,7 @@ from ff3d_tf.model import build_model
 from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.model import ops
 from ff3d_tf.model.layers import PointEncoder
+from ff3d_tf.model.plan import ExecutionPlan, resolve
 
 H, W, C = 6, 5, 8  # a small grid: many points per pillar, empty pillars
 
@@ -127,9 +128,9 @@ def _depends_on(op, other, seen=None):
     return False
 
 
-def test_hybrid_launches_the_clouds_as_independent_programs(tiny_config, monkeypatch):
-    monkeypatch.setattr(compile_lib, "hybrid_point_programs", "per_cloud")
+def test_hybrid_launches_the_clouds_as_independent_programs(tiny_config):
     model = build_model(tiny_config, "hybrid")
+    assert model.plan.point_programs == "per_cloud"
     rng = np.random.default_rng(0)
     inputs = {"points_xyz_t0": tf.constant(rng.uniform(-20, 20, (1, 64, 3)).astype(np.float32)),
               "point_features_t0": tf.constant(rng.uniform(0, 1, (1, 64, 2)).astype(np.float32)),
@@ -149,23 +150,19 @@ def test_model_per_cloud_equals_one_program_and_no_xla(tiny_config, training):
     from tests.model.test_fastflow3d import _inputs  # the tests' random clouds
     inputs = _inputs(np.random.default_rng(3), 2, 300, 250, extent=20.0)
     results = {}
-    saved = compile_lib.hybrid_point_programs
-    try:
-        for name, mode, programs in (("none", "none", "one"), ("one", "hybrid", "one"),
-                                     ("per_cloud", "hybrid", "per_cloud")):
-            compile_lib.hybrid_point_programs = programs
-            keras.utils.set_random_seed(0)
-            model = build_model(tiny_config, mode, point_chunk_size=128)
+    for name, mode, programs in (("none", "none", "one"), ("one", "hybrid", "one"),
+                                 ("per_cloud", "hybrid", "per_cloud")):
+        keras.utils.set_random_seed(0)
+        plan = resolve(tiny_config.model, "train", compile_mode=mode)[0].replace(point_programs=programs)
+        model = build_model(tiny_config, point_chunk_size=128, plan=plan)
 
-            @tf.function
-            def f(x, model=model):
-                with tf.GradientTape() as tape:
-                    flow = model(x, training=training)["flow_mps"]
-                    loss = tf.reduce_sum(tf.square(flow))
-                return flow, tape.gradient(loss, model.trainable_variables)
-            results[name] = f(inputs)
-    finally:
-        compile_lib.hybrid_point_programs = saved
+        @tf.function
+        def f(x, model=model):
+            with tf.GradientTape() as tape:
+                flow = model(x, training=training)["flow_mps"]
+                loss = tf.reduce_sum(tf.square(flow))
+            return flow, tape.gradient(loss, model.trainable_variables)
+        results[name] = f(inputs)
     for name in ("one", "per_cloud"):
         np.testing.assert_allclose(results[name][0].numpy(), results["none"][0].numpy(), rtol=1e-4, atol=1e-4)
         for a, b in zip(results[name][1], results["none"][1]):
@@ -174,10 +171,5 @@ def test_model_per_cloud_equals_one_program_and_no_xla(tiny_config, training):
 
 
 def test_hybrid_point_programs_checked():
-    saved = compile_lib.hybrid_point_programs
-    try:
-        compile_lib.hybrid_point_programs = "rows"
-        with pytest.raises(ValueError, match="per_cloud, one"):
-            compile_lib.hybrid_encode(lambda x, training, stage=None: x, {}, False)
-    finally:
-        compile_lib.hybrid_point_programs = saved
+    with pytest.raises(ValueError, match="per_cloud, one"):
+        ExecutionPlan(compile_mode="hybrid", point_programs="rows")

@@ -36,7 +36,7 @@ def test_config_key(tiny_config):
     with pytest.raises(ConfigError, match=r"model.remat_encoder: expected true/false, got 'yes'"):
         replace_config(tiny_config, {"model.remat_encoder": "yes"})
     model = _model(tiny_config, True, "none")
-    assert model.get_config()["remat_encoder"] is True
+    assert model.plan.remat_encoder and model.get_config()["plan"]["remat_encoder"] is True
 
 
 @pytest.mark.parametrize("mode,jit", [("none", False), ("xla", True)])

@@ -161,6 +161,27 @@ def test_checker_library_modules_are_targets_too(tmp_path):
         assert 'name = "check",\n    srcs = ["check.py"],\n    deps = ["//bazel/targets:lib"],\n)' in f.read()
 
 
+def test_lab_modules_and_tools_are_targets_too(tmp_path):
+    """lab/ is a package of py_libraries beside ff3d_tf/; lab/tools/ holds py_binaries whose bare `import _common` is
+    tools/_common.py; a test naming a lab tool gets it as data."""
+    root = _fake_tree(tmp_path)
+    _write(root, {"lab/__init__.py": "", "lab/bench.py": "from ff3d_tf import base\n",
+                  "lab/study/__init__.py": "", "lab/study/steps.py": "from lab import bench\n",
+                  "lab/tools/measure.py": 'import _common\nfrom lab.study import steps\nDEFAULT = "configs/x.yaml"\n',
+                  "tests/lab/test_measure.py": 'def test_x():\n    assert "lab/tools/measure.py"\n'})
+    rc, out = _check(root)
+    assert rc == 1 and "lab/tools/measure.py: no lab/tools/BUILD (a py_binary 'measure' is needed)" in out, out
+    rc, out = _check(root, "--fix")
+    assert rc == 0, out
+    with open(root / "lab/study/BUILD") as f:
+        assert 'py_library(\n    name = "steps",\n    srcs = ["steps.py"],\n    deps = ["//lab:bench"],\n)' in f.read()
+    with open(root / "lab/tools/BUILD") as f:
+        assert ('py_binary(\n    name = "measure",\n    srcs = ["measure.py"],\n    data = ["//configs"],\n    deps = [\n'
+                '        "//lab/study:steps",\n        "//tools:_common",\n    ],\n)') in f.read()
+    with open(root / "tests/lab/BUILD") as f:
+        assert 'pytest_test(\n    name = "test_measure",\n    data = ["//lab/tools:measure"],\n)' in f.read()
+
+
 def test_build_file_shapes_it_writes_and_reads(tmp_path):
     root = _fake_tree(tmp_path)
     _write(root, {"BUILD": 'package(default_visibility = ["//visibility:public"])\nexports_files(["pytest.ini"])\n',

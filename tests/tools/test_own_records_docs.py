@@ -1,5 +1,5 @@
 """The figures docs/datasets.md quotes about your own sequences are those of benchmarks/own_records_cpu.json (made by
-`python -m ff3d_tf.labels.own_records_bench`) and, for the Argoverse 2 records path, benchmarks/nsfp_cpu.json,
+`python -m lab.labels.own_records_bench`) and, for the Argoverse 2 records path, benchmarks/nsfp_cpu.json,
 formatted here as the page must show them (wrapped as you like). `python tests/tools/test_own_records_docs.py`
 prints them."""
 import json
@@ -53,7 +53,7 @@ def quotes() -> list[str]:
         f"Records of {speed['points_per_sweep']:,}-point sweeps are written at "
         f"{speed['with_boxes']['pairs_per_cpu_s']:.1f} pairs per CPU second with a box table of "
         f"{speed['boxes_per_sweep']} boxes a sweep and {speed['without_boxes']['pairs_per_cpu_s']:.1f} without "
-        f"({speed['with_boxes']['bytes_per_pair'] / 1e6:.1f} MB a pair; `python -m ff3d_tf.labels.own_records_bench`, "
+        f"({speed['with_boxes']['bytes_per_pair'] / 1e6:.1f} MB a pair; `python -m lab.labels.own_records_bench`, "
         f"{_machine(bench)}).",
     ]
 

@@ -41,14 +41,20 @@ class Reference:
 
     def __init__(self, cfg, weights):
         self.cfg = cfg
-        self.model = build_model(cfg)
+        # model.compile=auto resolved as the Trainer resolves it (job "train"): on a CPU where TensorFlow's oneDNN is
+        # off (AVX2: AMD Zen 3) that is xla for training but hybrid for inference, and Adam's first steps amplify
+        # the two modes' rounding differences to ~1e-3 in the weights.
+        self.model = build_model(cfg, job="train")
+        self.jit_compile = self.model.compile_mode == "xla"  # the Trainer's forward + backward as one XLA program
         self.model.set_weights(weights)
         self.optimizer = make_optimizer(cfg)
         self.optimizer.build(self.model.trainable_variables)
+        # One function for every step: traced (and in mode xla compiled) once per bucket, as the trainer's.
+        self._grad_fn = tf.function(self._sample_loss_and_grads, jit_compile=self.jit_compile, reduce_retracing=True)
 
     def _sample_loss_and_grads(self, sample):
         with tf.GradientTape() as tape:
-            out = self.model(model_inputs(sample), training=True, inline_stages=self.cfg.model.jit_compile)
+            out = self.model(model_inputs(sample), training=True, inline_stages=self.jit_compile)
             loss = tf.reduce_sum(per_sample_training_loss(sample, out, self.cfg.train.background_weight,
                                                           loss=self.cfg.train.loss)) / GLOBAL_BATCH
         return loss, tape.gradient(loss, self.model.trainable_variables)
@@ -63,7 +69,7 @@ class Reference:
         Compiled as the trainer compiles its per-replica step, so both run the same XLA program per sample (an
         eager reference differs in float rounding, which Adam's first steps amplify where |gradient| ~ epsilon).
         """
-        grad_fn = tf.function(self._sample_loss_and_grads, jit_compile=self.cfg.model.jit_compile)
+        grad_fn = self._grad_fn
         start = [v.numpy() for v in moving_stats(self.model)]
         grads_sum, loss_sum, updated = None, 0.0, []
         for sample in samples:

@@ -1,6 +1,7 @@
 """Training and evaluation with DeFlow's GRU head (`model.head=gru`): two replicas and two workers equal the
 one-model reference (`replica_reference.Reference`), its checkpoint restores, a resumed run continues it; evaluation
 scores a model and its SavedModel alike and takes the Argoverse 2 protocol."""
+import dataclasses
 import os
 
 import numpy as np
@@ -11,7 +12,7 @@ import test_multiworker as multiworker
 from replica_reference import GLOBAL_BATCH, Reference, batches, replica_config
 
 from ff3d_tf.checkpoints import restore_model
-from ff3d_tf.config import replace_config
+from ff3d_tf.config import load_config, replace_config
 from ff3d_tf.data import pairs
 from ff3d_tf.inference.saved_model import SavedModelPredictor, export_saved_model
 from ff3d_tf.model import build_model
@@ -20,10 +21,16 @@ from ff3d_tf.training.evaluation import evaluate, evaluate_av2
 from ff3d_tf.training.trainer import Trainer
 
 
+# One GRU step: the layer's tests (tests/model/test_gru_head.py) check several; here a smaller program to compile for
+# each trainer and reference. The two-worker test gives the same overrides to `tools/train.py` (`--set`): the GRU's
+# weights are the same whatever the iteration count, so a worker with another count trains a model of the same
+# variables but another function.
+GRU = {"model.head": "gru", "model.gru_iterations": 1}
+GRU_SETS = tuple(f"{k}={v}" for k, v in GRU.items())
+
+
 def _gru(cfg):
-    """One GRU step: the layer's tests (tests/model/test_gru_head.py) check several; here a smaller program to
-    compile for each trainer and reference."""
-    return replace_config(cfg, {"model.head": "gru", "model.gru_iterations": 1})
+    return replace_config(cfg, GRU)
 
 
 def _two_replicas():
@@ -89,17 +96,30 @@ def test_two_replicas_with_a_resume_equal_the_reference(tiny_segment, tiny_confi
 def test_two_workers_equal_each_other_and_the_reference(tiny_segment, tiny_config, tmp_path, monkeypatch):
     """`tools/train.py` on two workers (TF_CONFIG) with the GRU head: bit-identical workers, equal to the reference
     (the multi-worker test's procedure, `test_multiworker`, with `model.head=gru`)."""
-    monkeypatch.setattr(multiworker, "SETS", multiworker.SETS + ("model.head=gru",))
+    monkeypatch.setattr(multiworker, "SETS", multiworker.SETS + GRU_SETS)
     cfg = _gru(replica_config(tiny_config))
     model_dir = str(tmp_path / "m")
     outs = multiworker._finish(multiworker._start_workers(os.path.dirname(tiny_segment), model_dir,
                                                           multiworker.STEPS))
+    assert load_config(os.path.join(model_dir, "config.yaml")).model == cfg.model, "workers trained another model"
     fingerprints = multiworker._fingerprints(outs)
     assert fingerprints[0] == fingerprints[1], "workers ended with different weights"
     ref = multiworker._reference(tiny_segment, cfg, multiworker._initial_weights(cfg), multiworker.STEPS)
     trained = restore_model(cfg, model_dir)
     assert trained.head == "gru"
     _assert_same_variables(trained, ref.model)
+
+
+def test_the_workers_are_given_the_references_config(tiny_config):
+    """What `tools/train.py` loads from the two-worker test's command line (its default config file and
+    `multiworker.SETS` with the GRU's overrides) is the reference's config, but for the keys that only run the
+    workers: no CPU, no training (the two-worker test itself is slow)."""
+    worker = multiworker.worker_config(GRU_SETS)
+    reference = _gru(replica_config(tiny_config))
+    only_the_workers = {"num_steps", "checkpoint_every_steps"}
+    assert worker.model == reference.model and worker.grid == reference.grid and worker.data == reference.data
+    assert ({k: v for k, v in dataclasses.asdict(worker.train).items() if k not in only_the_workers}
+            == {k: v for k, v in dataclasses.asdict(reference.train).items() if k not in only_the_workers})
 
 
 @pytest.mark.slow  # a GRU SavedModel export and two evaluations: ~50 s; the paper head's in tests/training/test_evaluation.py

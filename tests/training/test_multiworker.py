@@ -20,6 +20,7 @@ from conftest import ROOT, TINY_OVERRIDES
 from replica_reference import GLOBAL_BATCH, Reference, replica_config
 
 from ff3d_tf.checkpoints import restore_model
+from ff3d_tf.config import load_config
 from ff3d_tf.training import cluster
 from ff3d_tf.training.input import training_dataset
 
@@ -32,6 +33,12 @@ def _sets(cfg_overrides):
 
 SETS = TINY_OVERRIDES + ("train.global_batch_size=2", "train.log_every_steps=1", "train.eval_every_steps=0",
                          "train.learning_rate=1e-2", "train.checkpoint_every_steps=1")
+TRAIN_CONFIG = "configs/fastflow3d_waymo.yaml"  # tools/train.py's config without --config
+
+
+def worker_config(extra_sets=()):
+    """The config a worker of `_start_workers` loads (with `extra_sets` added to SETS, as a test adds them)."""
+    return load_config(os.path.join(ROOT, TRAIN_CONFIG), SETS + tuple(extra_sets) + (f"train.num_steps={STEPS}",))
 
 
 def _start_workers(data_dir, model_dir, steps):
@@ -74,7 +81,7 @@ def _initial_weights(cfg):
     import keras
     from ff3d_tf.model import build_model
     keras.utils.set_random_seed(cfg.train.seed)  # what every worker's Trainer does before building its model
-    return build_model(cfg).get_weights()
+    return build_model(cfg, job="train").get_weights()
 
 
 def _assert_near_reference(trained, ref, initial):

@@ -1,5 +1,5 @@
 """The training step as portable XLA programs: added to a forward export, run by JAX it trains as TensorFlow's Keras
-Adam does; tools/run_xla.py times forward and training step where TensorFlow cannot be imported."""
+Adam does; lab/tools/run_xla.py times forward and training step where TensorFlow cannot be imported."""
 import json
 import os
 import subprocess
@@ -44,7 +44,7 @@ def test_runner_without_tensorflow_writes_latency_json(exported_tiny, tmp_path):
     _, out_dir, manifest = exported_tiny
     assert manifest == json.load(open(os.path.join(out_dir, xla_export_dir.MANIFEST_NAME)))
     out_json = tmp_path / "latency.json"
-    stdout = run_without_tf(os.path.join(ROOT, "tools", "run_xla.py"), out_dir, "--runs", "2", "--warmup", "1",
+    stdout = run_without_tf(os.path.join(ROOT, "lab", "tools", "run_xla.py"), out_dir, "--runs", "2", "--warmup", "1",
                             "--points", f"700,{TRAIN_POINTS[0]}", "--precisions", "float32", "--out", str(out_json))
     result = json.loads(out_json.read_text())
     assert result["platform"] == "cpu" and result["num_weights"] == len(manifest["weights"])
@@ -137,7 +137,8 @@ def test_step_runner_imports_no_tensorflow():
 @pytest.mark.slow  # two exports and their JAX compiles: ~100 s on 2 busy cores
 def test_gru_head_forward_and_training_step_without_tensorflow(tiny_config, tmp_path):
     """The model with DeFlow's GRU head (`model.head=gru`; its own gradient under the chunk loop) exported as the
-    forward and the training step, run by tools/run_xla.py without TensorFlow: both within TensorFlow's reference."""
+    forward and the training step, run by lab/tools/run_xla.py without TensorFlow: both within TensorFlow's
+    reference."""
     from ff3d_tf.config import replace_config
     cfg = replace_config(tiny_config, {"model.head": "gru"})
     model = tiny_model_off_initial_values(cfg)
@@ -147,7 +148,7 @@ def test_gru_head_forward_and_training_step_without_tensorflow(tiny_config, tmp_
                                   reference=True)
     assert any("gru/update_gate" in w["path"] for w in manifest["weights"])
     out_json = tmp_path / "latency.json"
-    run_without_tf(os.path.join(ROOT, "tools", "run_xla.py"), out_dir, "--runs", "1", "--warmup", "0",
+    run_without_tf(os.path.join(ROOT, "lab", "tools", "run_xla.py"), out_dir, "--runs", "1", "--warmup", "0",
                    "--precisions", "float32", "--out", str(out_json))
     result = json.loads(out_json.read_text())
     (forward,) = result["latency"]
