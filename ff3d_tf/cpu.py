@@ -58,7 +58,8 @@ STARTUP_JOBS = ("train", "inference")
 # the training program's temporaries, a higher peak for about the same step time), from two glibc arenas instead of
 # up to eight per core: the threads' freed blocks are reused across threads rather than held in arenas of their own
 # (`limit_malloc_arenas`). The measurement with them ("after"): benchmarks/cpu_step_avx2.json and
-# benchmarks/cpu_step_avx2_memory.json (tools/benchmark_cpu_step.py, both libraries capped to AVX2), docs/benchmarks.md.
+# benchmarks/cpu_step_avx2_memory.json (lab/tools/benchmark_cpu_step.py, both libraries capped to AVX2),
+# docs/benchmarks.md.
 AVX2_STARTUP = {"train": {"TF_ENABLE_ONEDNN_OPTS": "0", "MALLOC_ARENA_MAX": "2"},
                 "inference": {"TF_ENABLE_ONEDNN_OPTS": "0", "TF_CPU_ALLOCATOR_USE_BFC": "true"}}
 

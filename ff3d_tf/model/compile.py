@@ -4,7 +4,7 @@ The model has two kinds of work. The point stages (pillarization, the point enco
 the ungrid head) are gathers, scatters and small matmuls over up to millions of points: XLA fuses them into a few
 loops and keeps no per-op temporaries, less time and memory than TensorFlow's kernels. The dense stages (the
 convolutional encoder and decoder on the 512 x 512 grids) are convolutions: on a CPU where TensorFlow runs oneDNN's
-AVX-512 kernels, those are faster than XLA's (see benchmarks/latency_*.json, `tools/benchmark_latency.py --modes`);
+AVX-512 kernels, those are faster than XLA's (see benchmarks/latency_*.json, `lab/tools/benchmark_latency.py --modes`);
 on an AVX2-only CPU, XLA's one program holds the training step's memory lowest (benchmarks/cpu_step_avx2.json); on
 GPU both call cuDNN and XLA fuses the rest, so the whole program goes to XLA there.
 
@@ -25,10 +25,10 @@ kernels, TensorFlow's default on an AVX2-only CPU and the project's start-up cho
   eigen          per job, in the start-up's environment for the job (`ff3d_tf.cpu.AVX2_STARTUP`): to train, the
                  mode with the lowest peak memory, xla (also the fastest step there); to serve, the fastest forward,
                  hybrid (xla holds a little less) (benchmarks/cpu_step_avx2.json, "after",
-                 tools/benchmark_cpu_step.py with both libraries capped to AVX2; docs/benchmarks.md, "The training
+                 lab/tools/benchmark_cpu_step.py with both libraries capped to AVX2; docs/benchmarks.md, "The training
                  step on AVX2-only CPUs");
   onednn_avx2    xla for both jobs: for training the fastest step there, though `none` holds less memory
-                 (benchmarks/cpu_step_avx2_onednn.json, `tools/benchmark_cpu_step.py --settings after_onednn --jobs
+                 (benchmarks/cpu_step_avx2_onednn.json, `lab/tools/benchmark_cpu_step.py --settings after_onednn --jobs
                  train`); for the forward, not measured.
 
 The mode lives on the model (`FastFlow3D.compile_mode`, set by `build_model`) and applies whenever the model is traced

@@ -1,5 +1,5 @@
-"""The model's convolution forms (fields of the execution plan, `ff3d_tf.model.plan`): the stride-2 convolution whose gradients are computed
-phase by phase (`ops.conv2d_stride2`), the 1x1 convolution as a matrix product and the choice between them
+"""The model's convolution forms (fields of the execution plan, `ff3d_tf.model.plan`): the stride-2 convolution
+whose gradients are computed phase by phase (`ops.conv2d_stride2`), the 1x1 convolution as a matrix product and the choice between them
 (`layers.Conv2D`), a chain of convolutions as one composed convolution (`ops.conv_chain_same`), rows U5-V composed
 with the head's grid part (`FastFlow3D.grid_stages`) and each decoder block's U6 with the next block's U1
 (`layers.UpsampleSkip.into_next`). Each against TensorFlow's own convolutions and their gradients, or against the

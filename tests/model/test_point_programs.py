@@ -1,5 +1,5 @@
-"""The point encoding split into programs (compile mode hybrid's per-cloud programs, `compile.hybrid_encode`, the plan's `point_programs`): the
-pillar sums equal tf.math.unsorted_segment_sum and a NumPy reference to float32 rounding (empty pillars, masked and
+"""The point encoding split into programs (compile mode hybrid's per-cloud programs, `compile.hybrid_encode`, the
+plan's `point_programs`): the pillar sums equal tf.math.unsorted_segment_sum and a NumPy reference to float32 rounding (empty pillars, masked and
 padded points, repeated ids), in eager, graph and XLA; gradients equal; the clouds' programs depend on nothing of
 each other; the model's forward and gradients equal those of the single program and of no XLA."""
 import keras
