@@ -209,7 +209,8 @@ def stage_times(cfg, mode: str, labelled: dict, runs: int, plan_changes: dict | 
     resident memory a call adds above what the process held before it, GB. "batchnorm_ms": the BatchNorm kernels'
     time inside one conv_forward_backward call (TensorFlow profiler; None in mode xla, where they are fused into XLA's
     program)."""
-    calls = {k: bench.fetched(lambda f=f, a=a: f(*a)) for k, (f, a) in step_parts(cfg, mode, labelled).items()}
+    parts = step_parts(cfg, mode, labelled, plan_changes)
+    calls = {k: bench.fetched(lambda f=f, a=a: f(*a)) for k, (f, a) in parts.items()}
     readings = bench.round_robin(calls, runs, warmup=1, reading=bench.timed_with_memory)
     out = {k: {"median_ms": bench.middle([r["ms"] for r in rs]),
                "peak_above_before_gb": bench.middle([r["peak_rss_gb"] - r["rss_before_gb"] for r in rs])}
@@ -246,7 +247,7 @@ def _optimizer_part(cfg, model) -> tuple:
     return tf.function(optimizer), (state, grads)
 
 
-def step_parts(cfg, mode: str, labelled: dict) -> dict:
+def step_parts(cfg, mode: str, labelled: dict, plan_changes: dict | None = None) -> dict:
     """{part: (compiled function, its arguments)}: the parts of a training step in compile `mode` on `labelled`:
 
       point_forward          rows A-B (pillars, point encoder, scatter; BN statistics of training) and W-Z (head)

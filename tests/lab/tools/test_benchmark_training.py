@@ -13,21 +13,32 @@ sys.path.append(os.path.join(ROOT, "lab", "tools"))  # appended: lab/tools/ modu
 import benchmark_training  # noqa: E402
 
 
+def _started(monkeypatch) -> list:
+    """The jobs `main` starts up as; in this process TensorFlow is imported already, so the start-up is recorded
+    instead of applied (tests/tools/test_startup.py tests the start-up itself)."""
+    jobs = []
+    monkeypatch.setattr(benchmark_training._common, "start", jobs.append)
+    return jobs
+
+
 def test_flags_reach_the_library_and_its_result_is_written(tmp_path, monkeypatch):
+    from lab.training import bench_steps
     calls = []
 
     def training_benchmark(*args, **kwargs):
         calls.append(args)
         return {"input": [], "config": args[0]}
-    monkeypatch.setattr(benchmark_training.bench_steps, "training_benchmark", training_benchmark)
+    monkeypatch.setattr(bench_steps, "training_benchmark", training_benchmark)
+    jobs = _started(monkeypatch)
     out = tmp_path / "sub" / "training.json"
     benchmark_training.main(["--config", "", "--set", "train.global_batch_size=1", "--data_dir", "D", "--cores",
                              "1,2", "--input_batches", "3", "--train_steps", "4", "--out", str(out)])
-    assert calls == [("", ["train.global_batch_size=1"], "D", 2, 4, 1.0, [1, 2], 3, 4)]
+    assert calls == [("", ["train.global_batch_size=1"], "D", 2, 4, 1.0, [1, 2], 3, 4)] and jobs == ["train"]
     assert json.loads(out.read_text()) == {"input": [], "config": ""}
 
 
-def test_a_config_error_ends_the_tool_named(tmp_path):
+def test_a_config_error_ends_the_tool_named(tmp_path, monkeypatch):
+    _started(monkeypatch)
     with pytest.raises(SystemExit, match="config error: .*no_such_key"):
         benchmark_training.main(["--set", "train.no_such_key=1", "--out", str(tmp_path / "t.json")])
 
