@@ -26,7 +26,7 @@ def start(job: str) -> dict:
     TensorFlow inside `main()`, after this call (`tests/tools/test_startup.py` checks every tool)."""
     if job not in JOBS:
         raise ValueError(f"start-up job {job!r}: one of {', '.join(JOBS)}")
-    if "tensorflow" in sys.modules:
+    if sys.modules.get("tensorflow") is not None:  # (None: a process that blocks TensorFlow's import)
         raise StartupError(f"start({job!r}) after TensorFlow was imported: its settings would not take effect; a tool "
                            f"imports ff3d_tf's TensorFlow modules inside main(), after the start-up")
     added = _cpu.startup_environment(job)
