@@ -104,7 +104,8 @@ def test_two_workers_equal_each_other_and_the_reference(tiny_segment, tiny_confi
     assert fingerprints[0] == fingerprints[1], "workers ended with different weights"
     assert "[worker]" in outs[1] and "[worker]" not in outs[0]
     # Only the chief wrote into model_dir; the other worker's temporary directory is gone.
-    assert sorted(os.listdir(model_dir)) == ["checkpoints", "config.yaml", "execution_plan.json", "train", "train_history.json"]
+    assert sorted(os.listdir(model_dir)) == ["checkpoints", "config.yaml", "execution_plan.json", "train",
+                                             "train_history.json"]
     assert tf.train.latest_checkpoint(os.path.join(model_dir, "checkpoints")).endswith(f"ckpt-{STEPS}")
     ref = _reference(tiny_segment, cfg, _initial_weights(cfg), STEPS)
     _assert_near_reference(restore_model(cfg, model_dir), ref, _initial_weights(cfg))
