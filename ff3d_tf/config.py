@@ -91,6 +91,9 @@ class DataConfig:
     laser_names: tuple[int, ...] = schema.ALL_LASERS  # TOP, FRONT, SIDE_LEFT, SIDE_RIGHT, REAR
     returns: tuple[int, ...] = (1,)  # 1 = first return, 2 = second return
     max_frame_gap_s: float = 0.15  # pairs further apart are skipped (WOD frames are ~0.1 s apart)
+    # Sweeps per example: the current one and num_frames - 1 past ones, each moved into the current vehicle frame
+    # (2: the paper's pair; more for model.temporal stack or delta; at most schema.MAX_NUM_FRAMES).
+    num_frames: int = 2
     ego_motion_compensation: bool = True  # move the t-1 cloud into the t0 vehicle frame (paper appendix)
     crop_to_grid: bool = True  # drop points outside the pillar grid in the input pipeline (they get no prediction)
     skip_bad_records: bool = False  # False: a bad record stops the job with its file/record/field
@@ -127,6 +130,9 @@ class DataConfig:
         if self.max_frame_gap_s <= 0:
             raise ConfigError(f"data.max_frame_gap_s={self.max_frame_gap_s}: must be > 0")
         _in_range("data.point_bucket_base", self.point_bucket_base, 1, MAX_BUCKET_BASE)
+        if isinstance(self.num_frames, bool) or not isinstance(self.num_frames, int):
+            raise ConfigError(f"data.num_frames={self.num_frames!r}: an integer")
+        _in_range("data.num_frames", self.num_frames, 2, schema.MAX_NUM_FRAMES)
         _in_range("data.shuffle_buffer", self.shuffle_buffer, 1, None)
         _in_range("data.max_training_segments", self.max_training_segments, 0, None)
         if self.class_ablation not in CLASS_ABLATIONS:
@@ -145,6 +151,7 @@ class DataConfig:
 COMPILE_MODES = ("auto", "xla", "hybrid", "none")  # model.compile
 HEADS = ("paper", "gru")  # model.head
 FORWARDS = ("fused", "table")  # model.forward
+TEMPORALS = ("pair", "stack", "delta")  # model.temporal
 LOSSES = ("l2", "deflow", "deltaflow")  # train.loss
 
 
@@ -169,6 +176,13 @@ class ModelConfig:
     # (`ff3d_tf.model.plan`); table = every row as the paper's table lists it, one call per row (reading, debugging).
     # Both compute the same values up to float rounding.
     forward: str = "fused"
+    # How the sweeps of an example (data.num_frames) meet in the U-Net (`ff3d_tf.model.fastflow3d`): pair = the
+    # paper's two clouds (num_frames 2); stack = every sweep through the shared encoder, the decoder's skips
+    # concatenating all of them (the pair's concatenation extended, as DeFlow++ stacks sweeps); delta = DeltaFlow's
+    # decayed differences of the pillar grids, sum over past sweep k of temporal_decay^(k-1) (F(t0) - F(t-k)),
+    # divided by num_frames - 1, the only input of the U-Net (Zhang et al., arXiv 2508.17054).
+    temporal: str = "pair"
+    temporal_decay: float = 0.4
     # Zeros for row Z's kernel (the model starts at the zero-flow prediction) instead of the paper's Glorot init:
     # sum-pooled dense pillars through the linear decoder otherwise start at outputs of tens of m/s.
     zero_init_output: bool = False
@@ -209,6 +223,10 @@ class ModelConfig:
             raise ConfigError(f"model.head={self.head!r}: one of {', '.join(HEADS)}")
         if self.forward not in FORWARDS:
             raise ConfigError(f"model.forward={self.forward!r}: one of {', '.join(FORWARDS)}")
+        if self.temporal not in TEMPORALS:
+            raise ConfigError(f"model.temporal={self.temporal!r}: one of {', '.join(TEMPORALS)}")
+        if not (_is_number(self.temporal_decay) and 0.0 < self.temporal_decay <= 1.0):
+            raise ConfigError(f"model.temporal_decay={self.temporal_decay!r}: must be in (0, 1]")
         if not (isinstance(self.gru_iterations, int) and not isinstance(self.gru_iterations, bool)
                 and 0 <= self.gru_iterations <= MAX_GRU_ITERATIONS):
             raise ConfigError(f"model.gru_iterations={self.gru_iterations!r}: an integer in [0, {MAX_GRU_ITERATIONS}]")
@@ -414,6 +432,9 @@ class ExperimentConfig:
         self.model.validate()
         self.train.validate()
         self.nsfp.validate()
+        if self.model.temporal == "pair" and self.data.num_frames != 2:
+            raise ConfigError(f"data.num_frames={self.data.num_frames} with model.temporal=pair: the pair reads 2 "
+                              "sweeps; model.temporal=stack or delta reads more")
         if self.train.loss == "deltaflow" and self.data.labels == "pseudo":
             raise ConfigError("train.loss=deltaflow: its class and instance terms need human labels; pseudo-labels "
                               "(data.labels=pseudo) have no classes: use train.loss=l2 or deflow")

@@ -106,6 +106,41 @@ POINT_KEYS = {
 }
 
 
+# Sweeps beyond the pair (`data.num_frames` > 2): the past sweep k (k = 1 is the pair's t-1) is the cloud "tm{k}",
+# under the keys of `cloud_keys`; the field's multi-sweep models read up to 5 sweeps (DeltaFlow, Flow4D).
+MAX_NUM_FRAMES = 5
+for _k in range(2, MAX_NUM_FRAMES):
+    POINT_KEYS[f"points_xyz_tm{_k}_in_t0"] = PointKey("float32", (3,), f"tm{_k}", f"t-{_k} cloud moved into the "
+                                                      "vehicle frame at t0, m", "float32")
+    POINT_KEYS[f"point_features_tm{_k}"] = PointKey("float32", (2,), f"tm{_k}", "intensity, elongation", "float32",
+                                                    "float16")
+
+
+def sweep_clouds(num_frames: int) -> tuple[str, ...]:
+    """The clouds of an example of `num_frames` sweeps, newest first: ("t0", "tm1", ..., "tm{num_frames-1}")."""
+    return ("t0",) + tuple(f"tm{k}" for k in range(1, num_frames))
+
+
+def cloud_keys(cloud: str) -> dict:
+    """The keys of one cloud of an example ("t0", "tm1", ...): xyz (vehicle frame at t0, m), features (intensity,
+    elongation), mask (batched: real points), count (real points), pose (vehicle -> world at the sweep's time)."""
+    return {"xyz": "points_xyz_t0" if cloud == "t0" else f"points_xyz_{cloud}_in_t0",
+            "features": f"point_features_{cloud}", "mask": f"point_mask_{cloud}", "count": f"num_points_{cloud}",
+            "pose": f"pose_{cloud}"}
+
+
+def model_input_keys(num_frames: int = 2) -> tuple[str, ...]:
+    """What the model reads of a batched example of `num_frames` sweeps (`MODEL_INPUT_KEYS` for the pair)."""
+    return tuple(cloud_keys(c)[part] for c in sweep_clouds(num_frames) for part in ("xyz", "features", "mask"))
+
+
+def past_sweep_keys(num_frames: int) -> tuple[str, ...]:
+    """The keys an example of `num_frames` sweeps holds beyond the pair's (`PAIR_KEYS`): the per-point keys, count
+    and pose of the sweeps t-2 and older."""
+    return tuple(cloud_keys(c)[part] for c in sweep_clouds(num_frames)[2:]
+                 for part in ("xyz", "features", "count", "pose"))
+
+
 def _point_keys(cloud: str, optional: bool) -> tuple[str, ...]:
     return tuple(k for k, spec in POINT_KEYS.items() if spec.cloud == cloud and spec.optional == optional)
 

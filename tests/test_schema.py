@@ -14,7 +14,8 @@ def test_key_tuples_keep_the_order_existing_records_were_written_in():
 
 def test_every_stored_dtype_holds_its_values():
     for key, spec in schema.POINT_KEYS.items():
-        assert spec.cloud in ("t0", "tm1") and key.endswith(("_t0", "_tm1", "_tm1_in_t0")), key
+        assert spec.cloud in schema.sweep_clouds(schema.MAX_NUM_FRAMES), key
+        assert key.endswith((f"_{spec.cloud}", f"_{spec.cloud}_in_t0")), key
         for stored in (spec.stored, spec.stored_compact or spec.stored):
             if spec.dtype == "bool":
                 assert stored == "uint8", key
@@ -25,3 +26,15 @@ def test_every_stored_dtype_holds_its_values():
         field = pair_records.RECORD_FIELDS[key]
         assert (field.model_dtype, field.tail_shape, field.count_key) == (spec.dtype, spec.tail_shape,
                                                                           f"num_points_{spec.cloud}")
+
+
+def test_sweep_keys_extend_the_pair():
+    """The pair's model input is the 2-sweep case; older sweeps add their own keys in the same pattern."""
+    assert schema.model_input_keys(2) == schema.MODEL_INPUT_KEYS
+    assert schema.past_sweep_keys(2) == ()
+    assert schema.model_input_keys(3)[len(schema.MODEL_INPUT_KEYS):] == (
+        "points_xyz_tm2_in_t0", "point_features_tm2", "point_mask_tm2")
+    assert schema.past_sweep_keys(3) == ("points_xyz_tm2_in_t0", "point_features_tm2", "num_points_tm2", "pose_tm2")
+    for cloud in ("tm1", "tm2"):
+        keys = schema.cloud_keys(cloud)
+        assert schema.POINT_KEYS[keys["xyz"]].cloud == schema.POINT_KEYS[keys["features"]].cloud == cloud

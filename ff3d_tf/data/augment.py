@@ -21,8 +21,9 @@ import tensorflow as tf
 
 from ff3d_tf import schema
 
-# Per-point keys holding positions (flipped and offset) and flows (flipped only), all [N,3] in the vehicle frame at t0.
-POSITION_KEYS = ("points_xyz_t0", "points_xyz_tm1_in_t0")
+# Per-point keys holding positions (flipped and offset: every sweep's cloud) and flows (flipped only), all [N,3] in the
+# vehicle frame at t0.
+POSITION_KEYS = tuple(schema.cloud_keys(c)["xyz"] for c in schema.sweep_clouds(schema.MAX_NUM_FRAMES))
 FLOW_KEYS = ("flow_mps_t0", schema.PSEUDO_FLOW_KEY)
 
 
@@ -46,7 +47,7 @@ def apply(example: dict, flip_x, flip_y, height_offset_m) -> dict:
     scale = tf.stack([tf.where(flip_x, -1.0, 1.0), tf.where(flip_y, -1.0, 1.0), 1.0])
     shift = tf.stack([0.0, 0.0, tf.cast(height_offset_m, tf.float32)])
     out = dict(example)
-    for key in POSITION_KEYS:
+    for key in (k for k in POSITION_KEYS if k in example):
         out[key] = example[key] * scale + shift
     for key in FLOW_KEYS:
         if key in example:

@@ -11,6 +11,9 @@ layout. Precision `exact` keeps float32 everywhere; `compact` stores point featu
 stay float32, so pillar indices never change): float16 keeps 11 significant bits (relative error <= 2^-11, 0.05%),
 and a pair of N + N points takes 39 N bytes instead of 53 N.
 
+With `data.num_frames` > 2 a record also holds the older sweeps (`schema.past_sweep_keys`), copied into it: each
+record stands alone, at the cost of storing every sweep N - 1 times over a log (`Manifest.num_frames`).
+
 A directory of records has a manifest `pair_records.json` (`Manifest`): what wrote it (WOD or Argoverse 2, which lidars
 and returns, which labels), checked against the experiment config before any work starts.
 """
@@ -62,6 +65,14 @@ POSE_KEYS = ("pose_t0", "pose_tm1")  # float64 [4, 4] each
 REQUIRED_POINT_KEYS = schema.PAIR_T0_POINT_KEYS + schema.PAIR_TM1_POINT_KEYS
 
 
+def record_keys(num_frames: int = 2) -> tuple[tuple, tuple, tuple]:
+    """(per-point keys, count keys, pose keys) every record of `num_frames` sweeps holds."""
+    clouds = schema.sweep_clouds(num_frames)
+    past = [schema.cloud_keys(c) for c in clouds[2:]]
+    return (REQUIRED_POINT_KEYS + tuple(k[part] for k in past for part in ("xyz", "features")),
+            tuple(schema.cloud_keys(c)["count"] for c in clouds), tuple(schema.cloud_keys(c)["pose"] for c in clouds))
+
+
 @dataclasses.dataclass(frozen=True)
 class Manifest:
     """What a directory of pair records holds (`pair_records.json`)."""
@@ -78,6 +89,7 @@ class Manifest:
     # Argoverse 2 records for the 2024 challenge pair each sweep (t0) with the NEXT sweep (as "t-1"): the model's
     # flow is then minus the challenge's flow per 0.1 s (docs/datasets.md, "Argoverse 2"). WOD records are always "previous".
     partner: str = "previous"
+    num_frames: int = 2  # sweeps per record: t0, t-1 and num_frames - 2 older ones (`data.num_frames`)
     written_by: str = ""  # the writer's command line or description
 
     def validate(self, where: str) -> "Manifest":
@@ -94,6 +106,11 @@ class Manifest:
             raise bad("extras", f"unknown keys {sorted(unknown)}; known: {schema.PAIR_EXTRA_POINT_KEYS}")
         if self.partner not in ("previous", "next"):
             raise bad("partner", f"{self.partner!r}: previous or next")
+        if isinstance(self.num_frames, bool) or not isinstance(self.num_frames, int) or \
+                not 2 <= self.num_frames <= schema.MAX_NUM_FRAMES:
+            raise bad("num_frames", f"{self.num_frames!r}: an integer in [2, {schema.MAX_NUM_FRAMES}]")
+        if self.num_frames > 2 and self.partner != "previous":
+            raise bad("num_frames", "records of more than 2 sweeps hold past sweeps (partner previous)")
         problem = schema.lidar_selection_problem(self.laser_names, self.returns)
         if problem is not None:
             raise bad("laser_names", problem)
@@ -168,14 +185,17 @@ def _int_feature(value: int) -> tf.train.Feature:
     return tf.train.Feature(int64_list=tf.train.Int64List(value=[int(value)]))
 
 
-def serialize_pair(example: dict, precision: str = "exact", extras: tuple[str, ...] = ()) -> bytes:
-    """One record of a pair (NumPy arrays under `schema.PAIR_KEYS`, `METADATA_KEYS` and `extras`), as
-    `RECORD_FIELDS` lays it out."""
+def serialize_pair(example: dict, precision: str = "exact", extras: tuple[str, ...] = (), num_frames: int = 2
+                   ) -> bytes:
+    """One record of a pair (NumPy arrays under `schema.PAIR_KEYS`, `METADATA_KEYS` and `extras`; with `num_frames`
+    > 2 also `schema.past_sweep_keys`), as `RECORD_FIELDS` lays it out."""
     timestamp_ns, sequence_id = int(example[TIMESTAMP_KEY]), example[SEQUENCE_KEY]
     sequence_id = sequence_id.decode() if isinstance(sequence_id, bytes) else str(sequence_id)
-    n = {_T0: len(example["points_xyz_t0"]), _TM1: len(example["points_xyz_tm1_in_t0"])}
+    point_keys, count_keys, pose_keys = record_keys(num_frames)
+    n = {k: len(example[schema.cloud_keys(cloud)["xyz"]]) for k, cloud in zip(count_keys,
+                                                                            schema.sweep_clouds(num_frames))}
     features = {k: _int_feature(v) for k, v in n.items()}
-    for key in REQUIRED_POINT_KEYS + tuple(extras):
+    for key in point_keys + tuple(extras):
         spec = RECORD_FIELDS[key]
         value = np.asarray(example[key])
         want = (n[spec.count_key],) + spec.tail_shape
@@ -183,7 +203,7 @@ def serialize_pair(example: dict, precision: str = "exact", extras: tuple[str, .
             raise ValueError(f"{sequence_id} at {timestamp_ns}: {key} has shape {value.shape}, expected {want}")
         stored = getattr(spec, precision)
         features[key] = _bytes_feature(value.astype(f"<{np.dtype(stored).str[1:]}", copy=False).tobytes())
-    for key in POSE_KEYS:
+    for key in pose_keys:
         features[key] = _bytes_feature(np.asarray(example[key], "<f8").reshape(4, 4).tobytes())
     features[TIMESTAMP_KEY] = _int_feature(timestamp_ns)
     features[PARTNER_TIMESTAMP_KEY] = _int_feature(example[PARTNER_TIMESTAMP_KEY])
@@ -221,9 +241,11 @@ def records_file_name(sequence_id: str) -> str:
 
 
 # --- Reading ---------------------------------------------------------------------------------------------------------
-def _feature_spec(keys) -> dict:
-    spec = {k: tf.io.FixedLenFeature([], tf.int64) for k in (_T0, _TM1, TIMESTAMP_KEY, PARTNER_TIMESTAMP_KEY)}
-    spec.update({k: tf.io.FixedLenFeature([], tf.string) for k in tuple(keys) + POSE_KEYS + (SEQUENCE_KEY,)})
+def _feature_spec(manifest: Manifest, extras) -> dict:
+    point_keys, count_keys, pose_keys = record_keys(manifest.num_frames)
+    spec = {k: tf.io.FixedLenFeature([], tf.int64) for k in count_keys + (TIMESTAMP_KEY, PARTNER_TIMESTAMP_KEY)}
+    spec.update({k: tf.io.FixedLenFeature([], tf.string) for k in point_keys + tuple(extras) + pose_keys +
+                 (SEQUENCE_KEY,)})
     return spec
 
 
@@ -234,13 +256,14 @@ def record_parser(manifest: Manifest, extras: tuple[str, ...] = ()):
     missing = set(extras) - set(manifest.extras)
     if missing:
         raise ValueError(f"the records hold no {sorted(missing)} (they hold {list(manifest.extras) or 'no extras'})")
-    keys = REQUIRED_POINT_KEYS + tuple(extras)
-    spec = _feature_spec(keys)
+    point_keys, count_keys, pose_keys = record_keys(manifest.num_frames)
+    keys = point_keys + tuple(extras)
+    spec = _feature_spec(manifest, extras)
 
     @tf.autograph.experimental.do_not_convert
     def parse(record, source):
         f = tf.io.parse_single_example(record, spec)
-        counts = {k: tf.cast(f[k], tf.int32) for k in (_T0, _TM1)}
+        counts = {k: tf.cast(f[k], tf.int32) for k in count_keys}
         checks, out = [], {}
         for key in keys:
             field = RECORD_FIELDS[key]
@@ -251,7 +274,7 @@ def record_parser(manifest: Manifest, extras: tuple[str, ...] = ()):
                                            f"byte length does not match {field.count_key} x {width} "
                                            f"{stored.name} values", source))
             out[key] = (flat, field)
-        for key in POSE_KEYS:
+        for key in pose_keys:
             flat = tf.io.decode_raw(f[key], tf.float64)
             checks.append(wod_errors.check(tf.size(flat) == 16, key, "expected 16 float64 values", source))
             out[key] = (flat, None)
@@ -291,7 +314,7 @@ def locate_fault(files: list[str]) -> wod_errors.FrameDecodeError | None:
     if not files:
         return None
     manifest = manifest_of_files(files)
-    spec = _feature_spec(REQUIRED_POINT_KEYS + tuple(manifest.extras))
+    spec = _feature_spec(manifest, manifest.extras)
     for path in files:
         index = -1
         try:

@@ -1,8 +1,12 @@
-"""Frame pairs (t-1, t0) -> model input examples, in a `tf.data` pipeline with no Python per frame.
+"""Frame pairs (t-1, t0), or sequences of `data.num_frames` sweeps, -> model input examples, in a `tf.data` pipeline
+with no Python per frame.
 
 Per segment file: records are decoded in graph (parallel), consecutive frames are paired by timestamp (gap at most
 `max_frame_gap_s`; others are skipped), the t-1 cloud is moved into the vehicle frame at t0 with
 T = inv(pose_t0) @ pose_tm1 (paper appendix), and the study options (class ablation, density, ground removal) apply.
+With `data.num_frames` = N > 2, each example is the current frame and the N - 1 frames before it in the file, each
+consecutive two within `max_frame_gap_s`, every past cloud moved into the vehicle frame at t0 by its own pose; the
+first N - 2 frames that have a t-1 but not a full history give no example (as a window across a gap gives none).
 Batches are padded to point-count buckets (see `bucket_size`) so that XLA compiles once per bucket.
 """
 from __future__ import annotations
@@ -54,32 +58,42 @@ def decode_options(cfg: ExperimentConfig, inference_only: bool = False) -> Decod
 
 def make_pair(frame_tm1: dict, frame_t0: dict, cfg: ExperimentConfig, seed=None) -> dict:
     """One model input example (keys: `ff3d_tf.schema.PAIR_KEYS`) from two decoded frames (tensors)."""
-    pose_t0, pose_tm1 = frame_t0["pose"], frame_tm1["pose"]
-    if cfg.data.ego_motion_compensation:
-        points_tm1 = geometry.transform_points(frame_tm1["points_xyz"], geometry.t0_from_tm1(pose_t0, pose_tm1))
-    else:
-        points_tm1 = tf.identity(frame_tm1["points_xyz"])
-    ex = {
-        "points_xyz_t0": frame_t0["points_xyz"],
-        "point_features_t0": tf.stack([frame_t0["intensity"], frame_t0["elongation"]], -1),
-        "flow_mps_t0": frame_t0["flow_mps"],
-        "class_id_t0": frame_t0["class_id"],
-        "points_xyz_tm1_in_t0": points_tm1,
-        "point_features_tm1": tf.stack([frame_tm1["intensity"], frame_tm1["elongation"]], -1),
-    }
+    return make_example([frame_t0, frame_tm1], cfg, seed)
+
+
+def make_example(frames: list, cfg: ExperimentConfig, seed=None) -> dict:
+    """One model input example from decoded frames (tensors), newest first: t0, t-1 (the pair's keys,
+    `ff3d_tf.schema.PAIR_KEYS`), then any older sweeps (`schema.past_sweep_keys`), each past cloud moved into the
+    vehicle frame at t0 by T = inv(pose_t0) @ pose_tk (not moved without `data.ego_motion_compensation`)."""
+    frame_t0 = frames[0]
+    ex = {"points_xyz_t0": frame_t0["points_xyz"],
+          "point_features_t0": tf.stack([frame_t0["intensity"], frame_t0["elongation"]], -1),
+          "flow_mps_t0": frame_t0["flow_mps"], "class_id_t0": frame_t0["class_id"]}
+    clouds = schema.sweep_clouds(len(frames))
+    for cloud, frame in zip(clouds[1:], frames[1:]):
+        keys = schema.cloud_keys(cloud)
+        if cfg.data.ego_motion_compensation:
+            ex[keys["xyz"]] = geometry.transform_points(frame["points_xyz"],
+                                                        geometry.t0_from_tm1(frame_t0["pose"], frame["pose"]))
+        else:
+            ex[keys["xyz"]] = tf.identity(frame["points_xyz"])
+        ex[keys["features"]] = tf.stack([frame["intensity"], frame["elongation"]], -1)
     ex = _apply_studies(ex, cfg, seed)
-    ex["pose_t0"], ex["pose_tm1"] = pose_t0, pose_tm1
-    ex["num_points_t0"] = tf.shape(ex["points_xyz_t0"])[0]
-    ex["num_points_tm1"] = tf.shape(ex["points_xyz_tm1_in_t0"])[0]
+    for cloud, frame in zip(clouds, frames):
+        keys = schema.cloud_keys(cloud)
+        ex[keys["pose"]] = frame["pose"]
+        ex[keys["count"]] = tf.shape(ex[keys["xyz"]])[0]
     return ex
 
 
-_T0_KEYS = schema.PAIR_T0_POINT_KEYS + schema.PAIR_T0_EXTRA_POINT_KEYS  # every per-t0-point key a pair may hold
-_TM1_KEYS = schema.PAIR_TM1_POINT_KEYS + schema.PAIR_TM1_EXTRA_POINT_KEYS  # ... and per-t-1-point key
+def _cloud_of(key: str) -> str:
+    """The cloud ("t0", "tm1", ...) whose points a per-point key follows."""
+    return schema.POINT_KEYS[key].cloud
 
 
-def _keep(ex: dict, keep_t0, keep_tm1) -> dict:
-    return {k: tf.boolean_mask(v, keep_t0 if k in _T0_KEYS else keep_tm1) for k, v in ex.items()}
+def _keep(ex: dict, keep: dict) -> dict:
+    """`ex` with each per-point key's points where `keep[its cloud]` is True."""
+    return {k: tf.boolean_mask(v, keep[_cloud_of(k)]) for k, v in ex.items()}
 
 
 def raw_pair_config(cfg: ExperimentConfig) -> ExperimentConfig:
@@ -104,21 +118,21 @@ def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
             ex["flow_mps_t0"] = tf.where(ablated[:, None], 0.0, ex["flow_mps_t0"])
         else:  # "Ignored": no target label
             ex["class_id_t0"] = tf.where(ablated, schema.CLASS_NO_LABEL, cls)
-    keep_t0 = tf.ones_like(cls, tf.bool)
-    keep_tm1 = tf.ones(tf.shape(ex["points_xyz_tm1_in_t0"])[:1], tf.bool)
-    if d.crop_to_grid:
-        def inside(p):
-            return ((p[:, 0] >= g.x_range_m[0]) & (p[:, 0] < g.x_range_m[1]) & (p[:, 1] >= g.y_range_m[0]) &
-                    (p[:, 1] < g.y_range_m[1]) & (p[:, 2] >= g.z_range_m[0]) & (p[:, 2] <= g.z_range_m[1]))
-        keep_t0 &= inside(ex["points_xyz_t0"])
-        keep_tm1 &= inside(ex["points_xyz_tm1_in_t0"])
-    if d.remove_ground_below_z_m is not None:
-        keep_t0 &= ex["points_xyz_t0"][:, 2] >= d.remove_ground_below_z_m
-        keep_tm1 &= ex["points_xyz_tm1_in_t0"][:, 2] >= d.remove_ground_below_z_m
-    if d.point_keep_fraction < 1.0:
-        keep_t0 &= tf.random.stateless_uniform(tf.shape(keep_t0), seed) < d.point_keep_fraction
-        keep_tm1 &= tf.random.stateless_uniform(tf.shape(keep_tm1), seed + 1) < d.point_keep_fraction
-    return _keep(ex, keep_t0, keep_tm1)
+    # Every cloud of the example (t0, t-1, older sweeps), with its own seed offset for the density study.
+    xyz_keys = {_cloud_of(k): k for k in ex if k.startswith("points_xyz_")}
+    keep = {}
+    for offset, (cloud, key) in enumerate(sorted(xyz_keys.items(), key=lambda c: schema.sweep_clouds(
+            schema.MAX_NUM_FRAMES).index(c[0]))):
+        p = ex[key]
+        keep[cloud] = tf.ones(tf.shape(p)[:1], tf.bool)
+        if d.crop_to_grid:
+            keep[cloud] &= ((p[:, 0] >= g.x_range_m[0]) & (p[:, 0] < g.x_range_m[1]) & (p[:, 1] >= g.y_range_m[0]) &
+                            (p[:, 1] < g.y_range_m[1]) & (p[:, 2] >= g.z_range_m[0]) & (p[:, 2] <= g.z_range_m[1]))
+        if d.remove_ground_below_z_m is not None:
+            keep[cloud] &= p[:, 2] >= d.remove_ground_below_z_m
+        if d.point_keep_fraction < 1.0:
+            keep[cloud] &= tf.random.stateless_uniform(tf.shape(keep[cloud]), seed + offset) < d.point_keep_fraction
+    return _keep(ex, keep)
 
 
 @contextlib.contextmanager
@@ -149,8 +163,9 @@ def _frames_dataset(path: str, cfg: ExperimentConfig, inference_only: bool, skip
     return waymo.frames_dataset(path, decode_options(cfg, inference_only), skip_bad_records).map(frame_only)
 
 
-def consecutive_frames(frames: tf.data.Dataset) -> tf.data.Dataset:
-    """(frame t-1, frame t0) of each two consecutive frames, by a scan that carries the previous frame.
+def consecutive_frames(frames: tf.data.Dataset, num_frames: int = 2) -> tf.data.Dataset:
+    """Each `num_frames` consecutive frames as a tuple, newest first ((frame t0, frame t-1) for the pair), by a scan
+    that carries the previous `num_frames - 1` frames.
 
     Not `Dataset.window`: a window ends silently when its input fails on its first element, so a file truncated
     inside its first records gave no pairs and no error (found by `ff3d_tf.fuzz`).
@@ -158,32 +173,34 @@ def consecutive_frames(frames: tf.data.Dataset) -> tf.data.Dataset:
     none = {k: tf.zeros([d or 0 for d in spec.shape.as_list()], spec.dtype) for k, spec in frames.element_spec.items()}
 
     def step(state, frame_t0):
-        frame_tm1, have_tm1 = state
-        return (frame_t0, True), (frame_tm1, frame_t0, have_tm1)
+        previous, count = state  # the frames before this one, newest first; how many of them are real
+        window = (frame_t0,) + previous
+        return (window[:-1], tf.minimum(count + 1, num_frames - 1)), (window, count >= num_frames - 1)
 
-    pairs = frames.scan((none, False), step)
-    return pairs.filter(lambda f_tm1, f_t0, have_tm1: have_tm1).map(lambda f_tm1, f_t0, have_tm1: (f_tm1, f_t0))
+    windows = frames.scan(((none,) * (num_frames - 1), 0), step)
+    return windows.filter(lambda window, full: full).map(lambda window, full: window)
 
 
 def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool, metadata: bool = False):
     frames = _frames_dataset(path, cfg, inference_only, skip_bad_records)
     max_gap_us = int(round(cfg.data.max_frame_gap_s * 1e6))
 
-    def to_example(f_tm1, f_t0):
-        seed = tf.stack([tf.cast(f_t0["timestamp_micros"] % 2147483647, tf.int32), 7])
-        ex = make_pair(f_tm1, f_t0, cfg, seed)
+    def to_example(*window):  # newest first
+        seed = tf.stack([tf.cast(window[0]["timestamp_micros"] % 2147483647, tf.int32), 7])
+        ex = make_example(list(window), cfg, seed)
         if metadata:
-            ex[pair_records.TIMESTAMP_KEY] = f_t0["timestamp_micros"] * 1000
-            ex[pair_records.PARTNER_TIMESTAMP_KEY] = f_tm1["timestamp_micros"] * 1000
+            ex[pair_records.TIMESTAMP_KEY] = window[0]["timestamp_micros"] * 1000
+            ex[pair_records.PARTNER_TIMESTAMP_KEY] = window[1]["timestamp_micros"] * 1000
             ex[pair_records.SEQUENCE_KEY] = tf.strings.split(path, "/")[-1]
         return ex
 
-    def close_in_time(f_tm1, f_t0):
-        gap_us = f_t0["timestamp_micros"] - f_tm1["timestamp_micros"]
-        return tf.logical_and(gap_us > 0, gap_us <= max_gap_us)
+    def close_in_time(*window):  # every two consecutive sweeps in order and within the gap
+        gaps_us = tf.stack([newer["timestamp_micros"] - older["timestamp_micros"]
+                            for newer, older in zip(window[:-1], window[1:])])
+        return tf.reduce_all((gaps_us > 0) & (gaps_us <= max_gap_us))
 
-    pairs = consecutive_frames(frames).filter(close_in_time)
-    return pairs.map(to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
+    windows = consecutive_frames(frames, cfg.data.num_frames).filter(close_in_time)
+    return windows.map(to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 
 def _pairs_of_records(path, cfg: ExperimentConfig, manifest, extras: tuple, metadata: bool, skip: bool,
@@ -196,17 +213,18 @@ def _pairs_of_records(path, cfg: ExperimentConfig, manifest, extras: tuple, meta
     wanted = set(extras) | (extras_read if pseudo else set())
     read = tuple(k for k in schema.PAIR_EXTRA_POINT_KEYS if k in wanted)
 
+    point_keys, count_keys, pose_keys = pair_records.record_keys(manifest.num_frames)
+
     def to_example(record):
-        points = {k: record[k] for k in schema.PAIR_T0_POINT_KEYS + schema.PAIR_TM1_POINT_KEYS + read}
+        points = {k: record[k] for k in point_keys + read}
         if pseudo:
             points["flow_mps_t0"] = points[schema.PSEUDO_FLOW_KEY]
             if schema.PSEUDO_FLOW_KEY not in extras:
                 del points[schema.PSEUDO_FLOW_KEY]
         micros = record[pair_records.TIMESTAMP_KEY] // 1000  # the seed of the decoding path (`_pairs_of_file`)
         ex = _apply_studies(points, cfg, tf.stack([tf.cast(micros % 2147483647, tf.int32), 7]))
-        ex["pose_t0"], ex["pose_tm1"] = record["pose_t0"], record["pose_tm1"]
-        ex["num_points_t0"] = tf.shape(ex["points_xyz_t0"])[0]
-        ex["num_points_tm1"] = tf.shape(ex["points_xyz_tm1_in_t0"])[0]
+        ex.update({k: record[k] for k in pose_keys})
+        ex.update({k: tf.shape(ex[schema.cloud_keys(k[len("num_points_"):])["xyz"]])[0] for k in count_keys})
         if metadata:
             ex.update({k: record[k] for k in pair_records.METADATA_KEYS})
         return ex
@@ -220,6 +238,9 @@ def check_records_match(manifest, cfg: ExperimentConfig, where: str, inference_o
     `inference_only`: a predictor's input, for which unlabelled records serve)."""
     from ff3d_tf.config import ConfigError
     d = cfg.data
+    if manifest.num_frames != d.num_frames:
+        raise ConfigError(f"{where}: the pair records hold {manifest.num_frames} sweeps per example; the config asks "
+                          f"for data.num_frames={d.num_frames}: write records with that number, or change the config")
     if manifest.source == "wod" and (tuple(sorted(manifest.laser_names)), tuple(sorted(manifest.returns))) != \
             (tuple(sorted(d.laser_names)), tuple(sorted(d.returns))):
         raise ConfigError(f"{where}: the pair records hold lasers {manifest.laser_names}, returns "
@@ -260,22 +281,24 @@ def padded_singletons(ds: tf.data.Dataset, bucket_base: int):
     """(batch of one example padded to its bucket, the same example unpadded) for each example of `ds`: inference
     input without a tf.data pipeline per example."""
     for batch in batch_examples(ds, 1, bucket_base).prefetch(2):
-        n, n_tm1 = int(batch["num_points_t0"][0]), int(batch["num_points_tm1"][0])
-        length = {**dict.fromkeys(_T0_KEYS, n), **dict.fromkeys(_TM1_KEYS, n_tm1)}
+        length = {k: int(batch[schema.cloud_keys(_cloud_of(k))["count"]][0]) for k in batch if k in schema.POINT_KEYS}
         yield batch, {k: v[0, :length[k]] if k in length else v[0]
                       for k, v in batch.items() if not k.startswith("point_mask_")}
 
 
 def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_remainder: bool = False):
-    """Pads point arrays to a common bucketed size and adds `point_mask_t0` / `point_mask_tm1`."""
+    """Pads point arrays to a common bucketed size (per cloud) and adds each cloud's mask (`point_mask_t0`,
+    `point_mask_tm1`, ...)."""
     ds = ds.padded_batch(batch_size, drop_remainder=drop_remainder)
 
     def pad(batch):
         out = dict(batch)
-        for suffix, keys in (("t0", _T0_KEYS), ("tm1", _TM1_KEYS)):
-            n = tf.shape(batch[keys[0]])[1]
+        clouds = [c for c in schema.sweep_clouds(schema.MAX_NUM_FRAMES) if schema.cloud_keys(c)["xyz"] in batch]
+        for suffix in clouds:
+            keys = [k for k in batch if k in schema.POINT_KEYS and _cloud_of(k) == suffix]
+            n = tf.shape(batch[schema.cloud_keys(suffix)["xyz"]])[1]
             target = bucket_size_tf(n, bucket_base)
-            for k in (k for k in keys if k in batch):
+            for k in keys:
                 v = batch[k]
                 paddings = [[0, 0], [0, target - n]] + [[0, 0]] * (len(v.shape) - 2)
                 out[k] = tf.pad(v, paddings, constant_values=tf.cast(schema.POINT_KEYS[k].padding, v.dtype))

@@ -2,13 +2,20 @@
 
 Inputs (dict, batched and padded; see `ff3d_tf.schema`):
   points_xyz_t0 [B,N0,3], point_features_t0 [B,N0,2], point_mask_t0 [B,N0] bool,
-  points_xyz_tm1_in_t0 [B,N1,3], point_features_tm1 [B,N1,2], point_mask_tm1 [B,N1] bool.
+  points_xyz_tm1_in_t0 [B,N1,3], point_features_tm1 [B,N1,2], point_mask_tm1 [B,N1] bool;
+  with `num_frames` > 2 also the older sweeps' points_xyz_tm{k}_in_t0, point_features_tm{k}, point_mask_tm{k}
+  (`schema.model_input_keys`).
 Outputs (dict): flow_mps [B,N0,3] (m/s, vehicle frame at t0; 0 where invalid), point_valid [B,N0] bool.
 
 Both clouds share the point encoder (A) and the convolutional encoder (C-R): the two frames are stacked along the
 batch axis and pass through the same layers once. The decoder (S, T, U, V) takes the depth-wise concatenation of the
 two encoders' layers (t0 first), and the head (W-Z) regresses flow for the t0 points. `head="gru"` replaces rows
 W-Z with DeFlow's GRU point decoder (`ff3d_tf.model.gru_head.GRUHead`, Zhang et al., ICRA 2024).
+
+More sweeps (`temporal`, `model.temporal` in `ff3d_tf.config`): every sweep shares rows A and B; `stack` passes every
+sweep through the encoder and the decoder concatenates all of them (the pair's concatenation extended; the pair is
+`stack` with 2 sweeps); `delta` feeds the U-Net DeltaFlow's decayed difference of the pillar grids alone
+(`FastFlow3D._unet_input`), so its width stays C whatever the number of sweeps.
 
 Precision: the dense stages (rows C-V) compute in the execution plan's precision (`ff3d_tf.model.plan`: bfloat16 for
 `model.mixed_precision` resolved to it, see `ff3d_tf.model.compile`); the point stages (rows A, B, W-Z: coordinates,
@@ -62,7 +69,8 @@ class FastFlow3D(keras.Model):
     # Keyword-only, the paper's values without defaults: they live in `ff3d_tf.config` alone (`model_kwargs`).
     def __init__(self, *, num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, point_feature_dim,
                  encoder_widths, encoder_depths, decoder_dims, head_hidden_dim, zero_init_output=False,
-                 plan=None, point_chunk_size=ops.POINT_CHUNK, head="paper", gru_iterations=4, **kwargs):
+                 plan=None, point_chunk_size=ops.POINT_CHUNK, head="paper", gru_iterations=4, num_frames=2,
+                 temporal="pair", temporal_decay=0.4, **kwargs):
         super().__init__(**kwargs)
         self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
         self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
@@ -78,6 +86,15 @@ class FastFlow3D(keras.Model):
         if head not in ("paper", "gru"):
             raise ValueError(f"head={head!r}: paper or gru")
         self.head, self.gru_iterations = head, int(gru_iterations)
+        self.num_frames, self.temporal, self.temporal_decay = int(num_frames), temporal, float(temporal_decay)
+        if temporal not in ("pair", "stack", "delta") or not 2 <= self.num_frames <= schema.MAX_NUM_FRAMES or \
+                (temporal == "pair" and self.num_frames != 2):
+            raise ValueError(f"temporal={temporal!r} with num_frames={num_frames}: pair reads 2 sweeps, stack and "
+                             f"delta 2 to {schema.MAX_NUM_FRAMES}")
+        self.clouds = schema.sweep_clouds(self.num_frames)
+        # The U-Net's branches: the sweeps it encodes with shared weights, stacked on the batch axis, whose layers
+        # the decoder concatenates depth-wise (pair: the two clouds; stack: every sweep; delta: the one delta grid).
+        self.branches = {"pair": 2, "stack": self.num_frames, "delta": 1}[temporal]
 
         # The point stages in float32 under any global policy: pillar indices and offsets (a bfloat16 x would move
         # points across pillars), the point encoder and its pillar sums, and the head. XLA's CPU backend has no
@@ -154,7 +171,7 @@ class FastFlow3D(keras.Model):
             skip_shapes.append(shape)
 
         def both(sh):
-            return sh[:-1] + (2 * sh[-1],)
+            return sh[:-1] + (self.branches * sh[-1],)
         x_shape = both(skip_shapes[3])
         for block, skip in zip(self.upsample_skips, (skip_shapes[2], skip_shapes[1], skip_shapes[0])):
             block.build((x_shape, both(skip)))
@@ -163,15 +180,16 @@ class FastFlow3D(keras.Model):
         if self.head == "paper":
             self.head_y.build((None, None, self.conv_v.filters + c + 8))
             self.head_z.build((None, None, self.head_hidden_dim))
-        else:  # hidden state: the pillar embeddings at t0 and t-1, the decoder's output
-            self.head_gru.build([(None, h, w, c), (None, h, w, c), (None, h, w, self.conv_v.filters)])
+        else:  # hidden state: the pillar grids `_gru_grids` gives (two, or every sweep's with stack), row V's output
+            grids = self.num_frames if self.temporal == "stack" else 2
+            self.head_gru.build([(None, h, w, c)] * grids + [(None, h, w, self.conv_v.filters)])
         self.built = True
 
     def call(self, inputs, training=False, inline_stages=False):
         """`inline_stages=True`: the caller compiles this whole call with XLA (`tf.function(jit_compile=True)`, at any
         depth), so the stages are traced inline as plain ops, whatever `compile_mode`. Every such caller must pass it
         (see `ff3d_tf.model.compile`)."""
-        inputs = {k: inputs[k] for k in schema.MODEL_INPUT_KEYS}
+        inputs = {k: inputs[k] for k in schema.model_input_keys(self.num_frames)}
         forward = self.table_forward if self.plan.forward == "table" else self.fused_forward
         if self.compile_mode == "none" or tf.executing_eagerly() or inline_stages:
             return forward(inputs, training)
@@ -190,35 +208,37 @@ class FastFlow3D(keras.Model):
     def table_forward(self, inputs, training=False):
         """The paper's table, row by row: the model inputs (module docstring) -> flow_mps [B,N0,3] (0 where invalid),
         point_valid [B,N0]. Every convolution as the table lists it, whatever the plan's forms."""
-        xyz_t0, xyz_tm1 = inputs["points_xyz_t0"], inputs["points_xyz_tm1_in_t0"]
+        keys = [schema.cloud_keys(cloud) for cloud in self.clouds]  # t0, t-1 (and older sweeps), newest first
+        xyz_t0 = inputs["points_xyz_t0"]
         # Pillarize (the input of rows A and B): the 8-D encoding, the flat pillar id and validity of every point.
-        encoding_t0, ids_t0, valid_t0 = self.pillarize(xyz_t0, inputs["point_features_t0"],
-                                                       tf.cast(inputs["point_mask_t0"], tf.bool))
-        encoding_tm1, ids_tm1, valid_tm1 = self.pillarize(xyz_tm1, inputs["point_features_tm1"],
-                                                          tf.cast(inputs["point_mask_tm1"], tf.bool))
-        # A: per-point features [B,N,C] of both clouds (shared weights, one set of BN statistics).
-        features_t0, features_tm1 = self.point_encoder.point_features(
-            [encoding_t0, encoding_tm1], [valid_t0, valid_tm1], training=training)
-        # B: Snap-To-Grid, the pillar sums [B,H,W,C] of each cloud; both clouds stacked on the batch axis, t0 first.
-        grid_t0 = ops.pillar_sums(features_t0, ids_t0, self.num_pillars_y, self.num_pillars_x)
-        grid_tm1 = ops.pillar_sums(features_tm1, ids_tm1, self.num_pillars_y, self.num_pillars_x)
-        bev = tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_dtype)  # [2B,H,W,C]
+        encodings, ids, valid = zip(*[self.pillarize(inputs[k["xyz"]], inputs[k["features"]],
+                                                     tf.cast(inputs[k["mask"]], tf.bool)) for k in keys])
+        encoding_t0, ids_t0, valid_t0 = encodings[0], ids[0], valid[0]
+        # A: per-point features [B,N,C] of every cloud (shared weights, one set of BN statistics).
+        features = self.point_encoder.point_features(list(encodings), list(valid), training=training)
+        features_t0 = features[0]
+        # B: Snap-To-Grid, the pillar sums [B,H,W,C] of each cloud; the U-Net's input of them (`_unet_input`): with
+        # the pair, both clouds stacked on the batch axis, t0 first [2B,H,W,C].
+        grids = [ops.pillar_sums(f, i, self.num_pillars_y, self.num_pillars_x) for f, i in zip(features, ids)]
+        bev = self._unet_input(grids)
         # C-R: three encoder stages of ConvBlocks (3x3 convolution, BatchNorm, ReLU); the first of each has stride 2.
         x, skips = bev, [bev]
         for stage in self.encoder_stages:
             for block in stage:
                 x = block(x, training=training)
             skips.append(x)
-        # S, T, U: Upsample-Skip blocks on the depth-wise concatenation of the two clouds' encoder outputs.
+        # S, T, U: Upsample-Skip blocks on the depth-wise concatenation of the branches' encoder outputs (the pair:
+        # the two clouds').
         upsample_s, upsample_t, upsample_u = self.upsample_skips
-        x = upsample_s([_both_clouds(skips[3]), _both_clouds(skips[2])])
-        x = upsample_t([x, _both_clouds(skips[1])])
-        x = upsample_u([x, _both_clouds(skips[0])])
+        both = self._branches_concat
+        x = upsample_s([both(skips[3]), both(skips[2])])
+        x = upsample_t([x, both(skips[1])])
+        x = upsample_u([x, both(skips[0])])
         # V: 3x3 convolution, the flow embedding of every cell [B,H,W,C_V].
         v = self.conv_v(x)
         if self.head == "gru":  # W and DeFlow's GRU decoder in place of X-Z
             point_rows_t0 = self.pillarize.point_rows(xyz_t0, inputs["point_features_t0"])
-            return self._gru_flow(bev, v, point_rows_t0, ids_t0, valid_t0)
+            return self._gru_flow(self._gru_grids(bev, grids[0]), v, point_rows_t0, ids_t0, valid_t0)
         # W: Ungrid, each t0 point takes its pillar's cell embedding [B,N0,C_V].
         cell_t0 = L.UngridHead.ungrid(tf.cast(v, tf.float32), ids_t0)
         # X: concatenation with the point's feature (row A) and its 8-D encoding [B,N0,C_V + C + 8].
@@ -227,13 +247,35 @@ class FastFlow3D(keras.Model):
         flow = self.head_z(self.head_y(x))
         return {"flow_mps": tf.where(valid_t0[..., None], flow, tf.zeros_like(flow)), "point_valid": valid_t0}
 
-    def _gru_flow(self, bev, grid, point_rows_t0, pillar_ids_t0, point_valid_t0):
-        """DeFlow's GRU head (`gru_head.GRUHead.decode`) on the pillar embeddings of both clouds (bev [2B,H,W,C]),
-        row V's output and each t0 point's offset from its pillar centre (from `Pillarize.point_rows`)."""
-        bev_t0, bev_tm1 = tf.split(bev, 2, axis=0)
-        flow = self.head_gru.decode([bev_t0, bev_tm1, grid], point_rows_t0, pillar_ids_t0, point_valid_t0,
+    def _unet_input(self, grids):
+        """The clouds' pillar sums (float32 [B,H,W,C] each, t0 first) -> the U-Net's input in `conv_dtype`: the
+        branches stacked on the batch axis, t0 first ([2B,H,W,C] for the pair, [N B,H,W,C] with stack), or with
+        delta DeltaFlow's decayed difference [B,H,W,C]: sum over k = 1..N-1 of decay^(k-1) (grid_t0 - grid_tm{k}),
+        divided by N - 1 (the authors' code weighs the nearest past sweep by decay^0 and divides by the count)."""
+        if self.temporal != "delta":
+            return tf.cast(tf.concat(grids, 0), self.conv_dtype)
+        delta = tf.add_n([self.temporal_decay ** (k - 1) * (grids[0] - grids[k]) for k in range(1, len(grids))])
+        return tf.cast(delta / (len(grids) - 1), self.conv_dtype)
+
+    def _gru_grids(self, bev, grid_t0):
+        """The pillar grids of the GRU head's hidden state (before row V's output), in `conv_dtype`: the U-Net's
+        branches (`bev`: the pair's two clouds, or every sweep with stack), or with delta the t0 cloud's pillar sums
+        `grid_t0` and the delta grid `bev`."""
+        if self.temporal == "delta":
+            return [tf.cast(grid_t0, self.conv_dtype), bev]
+        return tf.split(bev, self.branches, axis=0)
+
+    def _gru_flow(self, pillar_grids, grid, point_rows_t0, pillar_ids_t0, point_valid_t0):
+        """DeFlow's GRU head (`gru_head.GRUHead.decode`) on the pillar grids (`_gru_grids`), row V's output and each
+        t0 point's offset from its pillar centre (from `Pillarize.point_rows`)."""
+        flow = self.head_gru.decode([*pillar_grids, grid], point_rows_t0, pillar_ids_t0, point_valid_t0,
                                     encode=self._point_offsets)
         return {"flow_mps": flow, "point_valid": point_valid_t0}
+
+    def _branches_concat(self, t):
+        """[S B,h,w,c] (the U-Net's S branches on the batch axis, t0 first) -> [B,h,w,S c], the branches' layers
+        concatenated depth-wise, t0 first (split: its gradient is a concat, no zero-filled grids)."""
+        return t if self.branches == 1 else tf.concat(tf.split(t, self.branches, axis=0), -1)
 
     # -- the fused forward -------------------------------------------------------------------------------------------
 
@@ -257,24 +299,25 @@ class FastFlow3D(keras.Model):
         point_valid_t0 [B,N0].
         `stage`: None (traced inline), or what makes each part its own program (`compile_lib.hybrid_encode`).
         """
-        clouds = [(inputs[xyz], inputs[features], tf.cast(inputs[mask], tf.bool)) for xyz, features, mask in
-                  (("points_xyz_t0", "point_features_t0", "point_mask_t0"),
-                   ("points_xyz_tm1_in_t0", "point_features_tm1", "point_mask_tm1"))]
-        (ids_t0, valid_t0), (ids_tm1, valid_tm1) = [(stage or (lambda f: f))(self.pillarize.cells)(*cloud)
-                                                    for cloud in clouds]
+        keys = [schema.cloud_keys(cloud) for cloud in self.clouds]
+        clouds = [(inputs[k["xyz"]], inputs[k["features"]], tf.cast(inputs[k["mask"]], tf.bool)) for k in keys]
+        ids, valid = zip(*[(stage or (lambda f: f))(self.pillarize.cells)(*cloud) for cloud in clouds])
+        ids_t0, valid_t0 = ids[0], valid[0]
         point_rows = [self.pillarize.point_rows(xyz, features) for xyz, features, _ in clouds]
         head_point_kernel = None
         if self.head == "paper":
             _, k_point, k_encoding, _ = self.head_y.composed_with(self.head_z)
             head_point_kernel = tf.concat([k_point, k_encoding], 0)  # [C + 8, 3]: (point feature, encoding) -> flow
         # The point encoder encodes each chunk of points itself (`Pillarize.encode`): no [N, 8] encoding is stored.
-        (grid_t0, grid_tm1), (point_flow_t0, _) = self.point_encoder(
-            point_rows, [valid_t0, valid_tm1], [ids_t0, ids_tm1], point_projections=(head_point_kernel, None),
+        grids, (point_flow_t0, *_) = self.point_encoder(
+            point_rows, list(valid), list(ids), point_projections=(head_point_kernel,) + (None,) * (len(ids) - 1),
             encode=self.pillarize.encode, training=training, stage=stage)
+        bev = self._unet_input(grids)
         head_inputs = ({"point_flow_t0": tf.cast(point_flow_t0, tf.float32)} if self.head == "paper" else
                        {"point_rows_t0": point_rows[0]})
-        return {"bev_features": tf.cast(tf.concat([grid_t0, grid_tm1], 0), self.conv_dtype), **head_inputs,
-                "pillar_ids_t0": ids_t0, "point_valid_t0": valid_t0}
+        if self.head == "gru" and self.temporal == "delta":  # the head's hidden state also reads the t0 grid
+            head_inputs["grid_t0"] = tf.cast(grids[0], self.conv_dtype)
+        return {"bev_features": bev, **head_inputs, "pillar_ids_t0": ids_t0, "point_valid_t0": valid_t0}
 
     def dense_stages(self, bev_features, training=False):
         """Rows C-V: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> grid flow
@@ -328,7 +371,7 @@ class FastFlow3D(keras.Model):
             skips.append(x)
         # skips: B, F, L, R (paper rows); decoder S(R*, L*), T(S, F*), U(T, B*), V(U).
         s, t, u = self.upsample_skips
-        both = _both_clouds
+        both = self._branches_concat
         if not self.plan.u6_into_next_u1:
             x = t([s([both(skips[3]), both(skips[2])]), both(skips[1])])
             if merged_last:
@@ -358,8 +401,8 @@ class FastFlow3D(keras.Model):
         head's float32."""
         valid = encoded["point_valid_t0"]
         if self.head == "gru":
-            return self._gru_flow(encoded["bev_features"], grid, encoded["point_rows_t0"], encoded["pillar_ids_t0"],
-                                  valid)
+            return self._gru_flow(self._gru_grids(encoded["bev_features"], encoded.get("grid_t0")), grid,
+                                  encoded["point_rows_t0"], encoded["pillar_ids_t0"], valid)
         bias = self.head_y.composed_with(self.head_z)[3]
         flow = self.head_y.ungrid(grid, encoded["pillar_ids_t0"]) + encoded["point_flow_t0"] + bias
         flow = tf.where(valid[..., None], flow, tf.zeros_like(flow))
@@ -388,13 +431,8 @@ class FastFlow3D(keras.Model):
                 "encoder_depths": self.encoder_depths, "decoder_dims": self.decoder_dims,
                 "head_hidden_dim": self.head_hidden_dim, "zero_init_output": self.zero_init_output,
                 "plan": self.plan.to_dict(), "point_chunk_size": self.point_chunk_size, "head": self.head,
-                "gru_iterations": self.gru_iterations}
-
-
-def _both_clouds(t):
-    """[2B,h,w,c] (t0 samples first) -> [B,h,w,2c], the two clouds' layers concatenated depth-wise, t0 first (split:
-    its gradient is a concat, no zero-filled grids)."""
-    return tf.concat(tf.split(t, 2, axis=0), -1)
+                "gru_iterations": self.gru_iterations, "num_frames": self.num_frames, "temporal": self.temporal,
+                "temporal_decay": self.temporal_decay}
 
 
 def _rematerialized_stage(stage: list, x):
@@ -426,7 +464,8 @@ def model_kwargs(cfg: ExperimentConfig) -> dict:
                 y_range_m=g.y_range_m, z_range_m=g.z_range_m, point_feature_dim=m.point_feature_dim,
                 encoder_widths=m.encoder_widths, encoder_depths=m.encoder_depths, decoder_dims=m.decoder_dims,
                 head_hidden_dim=m.head_hidden_dim, zero_init_output=m.zero_init_output, head=m.head,
-                gru_iterations=m.gru_iterations)
+                gru_iterations=m.gru_iterations, num_frames=cfg.data.num_frames, temporal=m.temporal,
+                temporal_decay=m.temporal_decay)
 
 
 def build_model(cfg: ExperimentConfig, compile_mode: str | None = None, point_chunk_size: int | None = None,

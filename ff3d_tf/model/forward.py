@@ -9,12 +9,12 @@ from __future__ import annotations
 import tensorflow as tf
 
 from ff3d_tf.predictor import Predictor
-from ff3d_tf.schema import MODEL_INPUT_KEYS
+from ff3d_tf.schema import MAX_NUM_FRAMES, model_input_keys
 
 
 def model_inputs(batch: dict) -> dict:
-    """The model's input keys of a batched example (labels and poses dropped)."""
-    return {k: batch[k] for k in MODEL_INPUT_KEYS}
+    """The model's input keys of a batched example, of every sweep it holds (labels and poses dropped)."""
+    return {k: batch[k] for k in model_input_keys(MAX_NUM_FRAMES) if k in batch}
 
 
 def compiled_forward(model, jit_compile: bool | None = None):

@@ -30,7 +30,7 @@ def wod_manifest(cfg: ExperimentConfig, precision: str = "exact", compression: s
     d = cfg.data
     return pair_records.Manifest(source="wod", laser_names=tuple(d.laser_names), returns=tuple(d.returns),
                                  max_frame_gap_s=d.max_frame_gap_s, precision=precision, compression=compression,
-                                 extras=tuple(extras), human_labels=human_labels,
+                                 extras=tuple(extras), human_labels=human_labels, num_frames=d.num_frames,
                                  written_by=written_by).validate("<manifest>")
 
 
@@ -63,7 +63,7 @@ def write_segment(in_path: str, out_dir: str, cfg: ExperimentConfig, manifest: p
                 counts["pairs"] += 1
                 counts["points_t0"] += int(ex["num_points_t0"])
                 counts["points_tm1"] += int(ex["num_points_tm1"])
-                yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras)
+                yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras, manifest.num_frames)
 
     pair_records.write_records_atomically(out_path, records(), manifest.compression)
     counts["bytes"] = tf.io.gfile.stat(out_path).length

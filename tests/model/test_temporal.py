@@ -1,0 +1,92 @@
+"""The sweeps' meeting in the U-Net (`model.temporal`): DeltaFlow's decayed difference by hand, `stack` of two sweeps
+is the paper's pair (same weights, same flow), both forwards agree for every variant and head, and a training step
+reaches every weight."""
+import numpy as np
+import pytest
+import tensorflow as tf
+
+from ff3d_tf import schema
+from ff3d_tf.config import replace_config
+from ff3d_tf.model.fastflow3d import build_model
+
+VARIANTS = (("stack", 3), ("delta", 3), ("delta", 5))
+
+
+def _config(tiny_config, temporal, num_frames, **changes):
+    return replace_config(tiny_config, {"model.temporal": temporal, "data.num_frames": num_frames, **changes})
+
+
+def _inputs(num_frames, seed=0, n=200):
+    rng = np.random.default_rng(seed)
+    out = {}
+    for cloud in schema.sweep_clouds(num_frames):
+        keys = schema.cloud_keys(cloud)
+        out[keys["xyz"]] = tf.constant(rng.uniform([-39, -39, -1], [39, 39, 2], (1, n, 3)), tf.float32)
+        out[keys["features"]] = tf.constant(rng.uniform(0, 1, (1, n, 2)), tf.float32)
+        out[keys["mask"]] = tf.constant(np.arange(n)[None] < n - 17)
+    return out
+
+
+def test_delta_by_hand(tiny_config):
+    """`_unet_input` on 1 x 1 x 2 grids of one channel. N = 2: the one term, grid_t0 - grid_tm1 (decay^0, divided by
+    1). N = 3, decay 0.4: ((g0 - g1) + 0.4 (g0 - g2)) / 2."""
+    g0, g1, g2 = (tf.constant(np.array(v, np.float32).reshape(1, 1, 2, 1)) for v in ([5, 1], [2, 3], [1, -4]))
+    two = build_model(_config(tiny_config, "delta", 2), compile_mode="none")
+    np.testing.assert_allclose(two._unet_input([g0, g1]).numpy().ravel(), [3, -2])  # 5 - 2, 1 - 3
+    three = build_model(_config(tiny_config, "delta", 3, **{"model.temporal_decay": 0.4}), compile_mode="none")
+    # cell 0: ((5 - 2) + 0.4 (5 - 1)) / 2 = (3 + 1.6) / 2 = 2.3; cell 1: ((1 - 3) + 0.4 (1 + 4)) / 2 = 0 / 2 = 0
+    np.testing.assert_allclose(three._unet_input([g0, g1, g2]).numpy().ravel(), [2.3, 0.0], atol=1e-6)
+
+
+@pytest.mark.parametrize("head", ["paper", "gru"])
+def test_stack_of_two_sweeps_is_the_pair(tiny_config, head):
+    pair = build_model(replace_config(tiny_config, {"model.head": head}), compile_mode="none")
+    stack = build_model(_config(tiny_config, "stack", 2, **{"model.head": head}), compile_mode="none")
+    assert [v.shape for v in pair.weights] == [v.shape for v in stack.weights]
+    stack.set_weights(pair.get_weights())
+    x = _inputs(2)
+    np.testing.assert_array_equal(stack(x)["flow_mps"].numpy(), pair(x)["flow_mps"].numpy())
+
+
+@pytest.mark.parametrize("head", ["paper", "gru"])
+@pytest.mark.parametrize("temporal,num_frames", VARIANTS)
+def test_fused_forward_equals_the_table(tiny_config, head, temporal, num_frames):
+    cfg = _config(tiny_config, temporal, num_frames, **{"model.head": head})
+    fused = build_model(cfg, compile_mode="none")
+    table = build_model(replace_config(cfg, {"model.forward": "table"}), compile_mode="none")
+    table.set_weights(fused.get_weights())
+    x = _inputs(num_frames, seed=1)
+    a, b = fused(x)["flow_mps"].numpy(), table(x)["flow_mps"].numpy()
+    assert np.abs(a).max() > 0
+    np.testing.assert_allclose(a, b, atol=1e-4 * np.abs(b).max())
+
+
+def test_the_past_sweeps_change_the_flow_and_delta_width_does_not_grow(tiny_config):
+    """The older sweeps are read (moving one changes the flow), and delta's weights are the same at N = 3 and 5."""
+    model = build_model(_config(tiny_config, "delta", 3), compile_mode="none")
+    x = _inputs(3, seed=2)
+    moved = dict(x, points_xyz_tm2_in_t0=x["points_xyz_tm2_in_t0"] + [3.0, 0.0, 0.0])
+    assert np.abs(model(x)["flow_mps"].numpy() - model(moved)["flow_mps"].numpy()).max() > 1e-4
+    five = build_model(_config(tiny_config, "delta", 5), compile_mode="none")
+    assert [v.shape for v in model.weights] == [v.shape for v in five.weights]
+    pair = build_model(tiny_config, compile_mode="none")
+    stack = build_model(_config(tiny_config, "stack", 3), compile_mode="none")
+    assert model.count_params() < pair.count_params() < stack.count_params()
+
+
+@pytest.mark.parametrize("compile_mode", ["none", "xla"])
+def test_a_training_step_reaches_every_weight(tiny_config, compile_mode):
+    cfg = _config(tiny_config, "delta", 3)
+    model = build_model(cfg, compile_mode=compile_mode, job="train")
+    x = _inputs(3, seed=3)
+    flow_true = tf.constant(np.random.default_rng(4).normal(size=(1, 200, 3)), tf.float32)
+
+    @tf.function(jit_compile=compile_mode == "xla")
+    def grads():
+        with tf.GradientTape() as tape:
+            loss = tf.reduce_mean(tf.square(model(x, training=True, inline_stages=compile_mode == "xla")["flow_mps"]
+                                            - flow_true))
+        return loss, tape.gradient(loss, model.trainable_variables)
+    loss, g = grads()
+    assert np.isfinite(float(loss))
+    assert [v.path for v, d in zip(model.trainable_variables, g) if d is None or not np.any(d.numpy())] == []
