@@ -41,7 +41,7 @@ from typing import Sequence
 import numpy as np
 
 from ff3d_tf import xla_program
-from ff3d_tf.schema import CLASS_NAMES, CLASS_NO_LABEL, MODEL_INPUT_KEYS
+from ff3d_tf.schema import CLASS_NAMES, CLASS_NO_LABEL, model_input_keys
 from ff3d_tf.xla_program import ExportFormatError  # noqa: F401  (this module's callers catch it from here)
 
 FORMAT = "ff3d_tf.xla_forward/1"
@@ -86,7 +86,8 @@ def random_inputs(manifest: dict, entry: dict, rng: np.random.Generator) -> list
     argument order (`manifest["input_keys"]`)."""
     g = manifest["grid"]
     clouds = random_clouds(rng, entry["points"], entry["padded_points"],
-                           (g["x_range_m"], g["y_range_m"], g["z_range_m"]), entry["batch_size"])
+                           (g["x_range_m"], g["y_range_m"], g["z_range_m"]), entry["batch_size"],
+                           len(manifest["input_keys"]) // 3)
     return [clouds[k] for k in manifest["input_keys"]]
 
 
@@ -98,15 +99,16 @@ def load_reference(export_dir: str):
 
 # -- made-up input: the reference's clouds and labels (also the lab's benchmark cloud) ---------------------------------
 def random_clouds(rng: np.random.Generator, points: int, padded_points: int, bounds: Sequence[Sequence[float]],
-                  batch_size: int = 1) -> dict[str, np.ndarray]:
-    """The model's inputs for `batch_size` pairs of made-up clouds (t0, then t-1 in the t0 frame) of `points`
-    points, padded to `padded_points`: `MODEL_INPUT_KEYS` in order, xyz float32 [B,P,3], features float32 [B,P,2],
-    mask bool [B,P]. `bounds`: the grid's ((x_min, x_max), (y_min, y_max), (z_min, z_max)), metres."""
+                  batch_size: int = 1, num_frames: int = 2) -> dict[str, np.ndarray]:
+    """The model's inputs for `batch_size` examples of `num_frames` made-up clouds (t0, then t-1 and any older ones
+    in the t0 frame) of `points` points, padded to `padded_points`: `schema.model_input_keys` in order, xyz float32
+    [B,P,3], features float32 [B,P,2], mask bool [B,P]. `bounds`: the grid's ((x_min, x_max), (y_min, y_max),
+    (z_min, z_max)), metres."""
     if not 0 < points <= padded_points:
         raise ValueError(f"points={points}: need 0 < points <= padded_points={padded_points}")
     b, n, p = batch_size, points, padded_points
     arrays = []
-    for _ in range(2):
+    for _ in range(num_frames):
         xyz = np.zeros((b, p, 3), np.float32)
         xyz[:, :n] = np.stack([rng.uniform(lo, hi, (b, n)) for lo, hi in bounds], -1)
         features = np.zeros((b, p, 2), np.float32)
@@ -114,7 +116,7 @@ def random_clouds(rng: np.random.Generator, points: int, padded_points: int, bou
         mask = np.zeros((b, p), bool)
         mask[:, :n] = True
         arrays += [xyz, features, mask]
-    return dict(zip(MODEL_INPUT_KEYS, arrays))
+    return dict(zip(model_input_keys(num_frames), arrays))
 
 
 def random_labels(rng: np.random.Generator, points: int, padded_points: int, batch_size: int = 1) -> dict:
@@ -140,14 +142,17 @@ def model_weights(model) -> list:
     return list(model.trainable_variables) + list(model.non_trainable_variables)
 
 
-def input_specs(batch_size: int, padded_points: int) -> list:
-    """The six model inputs of one bucket as `tf.TensorSpec`s, in `MODEL_INPUT_KEYS` order (`ff3d_tf.schema`)."""
+def input_specs(batch_size: int, padded_points: int, num_frames: int = 2) -> list:
+    """The model inputs of one bucket (three per sweep: the pair's six) as `tf.TensorSpec`s, in
+    `schema.model_input_keys` order."""
     import tensorflow as tf
     b, p = batch_size, padded_points
-    shapes = {"points_xyz_t0": ([b, p, 3], tf.float32), "point_features_t0": ([b, p, 2], tf.float32),
-              "point_mask_t0": ([b, p], tf.bool), "points_xyz_tm1_in_t0": ([b, p, 3], tf.float32),
-              "point_features_tm1": ([b, p, 2], tf.float32), "point_mask_tm1": ([b, p], tf.bool)}
-    return [tf.TensorSpec(*shapes[k], name=k) for k in MODEL_INPUT_KEYS]
+    specs = []
+    for key in model_input_keys(num_frames):
+        shape, dtype = (([b, p], tf.bool) if key.startswith("point_mask_") else
+                        ([b, p, 2], tf.float32) if key.startswith("point_features_") else ([b, p, 3], tf.float32))
+        specs.append(tf.TensorSpec(shape, dtype, name=key))
+    return specs
 
 
 def tracing_model(cfg, precision: str, model):
@@ -183,7 +188,7 @@ def new_export(cfg, model, out_dir: str, platforms: Sequence[str], weights_sourc
         "grid": {"num_pillars_x": g.num_pillars_x, "num_pillars_y": g.num_pillars_y, "x_range_m": list(g.x_range_m),
                  "y_range_m": list(g.y_range_m), "z_range_m": list(g.z_range_m)},
         "params": int(model.count_params()),
-        "input_keys": list(MODEL_INPUT_KEYS), "output_keys": list(OUTPUT_KEYS),
+        "input_keys": list(model_input_keys(model.num_frames)), "output_keys": list(OUTPUT_KEYS),
         "weights": [{"path": v.path, "shape": list(v.shape), "dtype": str(v.dtype)} for v in weights],
         "num_trainable": len(model.trainable_variables),
         "artifacts": [], "train_artifacts": [],

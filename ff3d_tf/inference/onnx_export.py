@@ -12,6 +12,8 @@ has no assert; `OnnxFlowPredictor` checks the poses on the host, with the same r
                                 float64 (`geometry.t0_from_tm1_np`) and applied in float32: no float64 tensor in the
                                 graph (TensorRT has none).
   outputs  flow_mps [N0,3] float32 (m/s, vehicle frame at t0; 0 where invalid), point_valid [N0] bool.
+A model of more sweeps (`data.num_frames`) takes every cloud, oldest first (points_tm2 before points_tm1), then
+every pose in the same order, or one t0_from_tm{k} per past sweep (`input_names`).
 
 Variants (`VARIANTS`):
   "loop"          the point encoder in chunks of `ops.POINT_CHUNK` points, an ONNX `Loop` per cloud: memory bounded at
@@ -47,10 +49,10 @@ import logging
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf import geometry, internals
+from ff3d_tf import geometry, internals, schema
 from ff3d_tf.model import ops
 from ff3d_tf.model.fastflow3d import FastFlow3D
-from ff3d_tf.predictor import ServingPredictor
+from ff3d_tf.predictor import ServingPredictor, num_frames_of, serving_names
 
 VARIANTS = ("loop", "single_chunk")
 POSE_INPUTS = ("world_float64", "relative_float32")
@@ -63,11 +65,13 @@ CONTROL_FLOW_OPS = ("Loop", "If", "Scan")
 _METADATA_KEYS = ("ff3d_variant", "ff3d_pose_inputs")
 
 
-def input_names(pose_inputs: str) -> tuple[str, ...]:
-    """The graph's input names, in order, for a `POSE_INPUTS` choice."""
+def input_names(pose_inputs: str, num_frames: int = 2) -> tuple[str, ...]:
+    """The graph's input names, in order, for a `POSE_INPUTS` choice: the clouds oldest first, then the poses in the
+    same order (`ff3d_tf.predictor.serving_names`) or each past sweep's t0_from_tm{k}, oldest first."""
     _check_choice("pose_inputs", pose_inputs, POSE_INPUTS)
-    return ("points_tm1", "points_t0") + (("pose_tm1", "pose_t0") if pose_inputs == "world_float64" else
-                                          ("t0_from_tm1",))
+    points, poses = serving_names(num_frames)
+    return points + (poses if pose_inputs == "world_float64" else tuple(f"t0_from_{c}" for c in
+                                                                         schema.sweep_clouds(num_frames)[:0:-1]))
 
 
 def _check_choice(name, value, choices):
@@ -103,28 +107,35 @@ def _at_least_one_point(points, n):
 
 def serving_function(model: FastFlow3D, pose_inputs: str):
     """(tf.function, input signature) of the graph that is converted; `model` should be an `export_twin`."""
-    names = input_names(pose_inputs)
+    num_frames = model.num_frames
+    names = input_names(pose_inputs, num_frames)
 
-    def flow(points_tm1, points_t0, xyz_tm1_in_t0):
-        n0, n1 = tf.shape(points_t0)[0], tf.shape(points_tm1)[0]
-        p0, m0 = _at_least_one_point(points_t0, n0)
-        p1, m1 = _at_least_one_point(tf.concat([xyz_tm1_in_t0, points_tm1[:, 3:]], -1), n1)
-        out = model({"points_xyz_t0": p0[..., :3], "point_features_t0": p0[..., 3:], "point_mask_t0": m0,
-                     "points_xyz_tm1_in_t0": p1[..., :3], "point_features_tm1": p1[..., 3:],
-                     "point_mask_tm1": m1}, training=False)
+    def flow(clouds, past_xyz_in_t0):
+        """clouds: [N,5] each, t0 first; past_xyz_in_t0: each past cloud's xyz in the t0 frame, t-1 first."""
+        inputs = {}
+        for k, cloud in enumerate(schema.sweep_clouds(num_frames)):
+            points = clouds[k] if k == 0 else tf.concat([past_xyz_in_t0[k - 1], clouds[k][:, 3:]], -1)
+            padded, mask = _at_least_one_point(points, tf.shape(clouds[k])[0])
+            keys = schema.cloud_keys(cloud)
+            inputs.update({keys["xyz"]: padded[..., :3], keys["features"]: padded[..., 3:], keys["mask"]: mask})
+        out = model(inputs, training=False)
+        n0 = tf.shape(clouds[0])[0]
         return {"flow_mps": out["flow_mps"][0, :n0], "point_valid": out["point_valid"][0, :n0]}
 
-    points = [tf.TensorSpec([None, POINT_WIDTH], tf.float32, name=n) for n in names[:2]]
+    points = [tf.TensorSpec([None, POINT_WIDTH], tf.float32, name=n) for n in names[:num_frames]]
     if pose_inputs == "world_float64":
-        def fn(points_tm1, points_t0, pose_tm1, pose_t0):
-            t0_from_tm1 = geometry.rigid_inverse(pose_t0) @ pose_tm1
-            return flow(points_tm1, points_t0, geometry.transform_points(points_tm1[:, :3], t0_from_tm1))
-        signature = points + [tf.TensorSpec([4, 4], tf.float64, name=n) for n in names[2:]]
+        def fn(*args):
+            clouds, poses = args[:num_frames][::-1], args[num_frames:][::-1]  # t0 first
+            world_to_t0 = geometry.rigid_inverse(poses[0])
+            return flow(clouds, [geometry.transform_points(c[:, :3], world_to_t0 @ pose)
+                                 for c, pose in zip(clouds[1:], poses[1:])])
+        signature = points + [tf.TensorSpec([4, 4], tf.float64, name=n) for n in names[num_frames:]]
     else:
-        def fn(points_tm1, points_t0, t0_from_tm1):
-            xyz = tf.matmul(points_tm1[:, :3], t0_from_tm1[:3, :3], transpose_b=True) + t0_from_tm1[:3, 3]
-            return flow(points_tm1, points_t0, xyz)
-        signature = points + [tf.TensorSpec([4, 4], tf.float32, name=names[2])]
+        def fn(*args):
+            clouds, motions = args[:num_frames][::-1], args[num_frames:][::-1]  # t0 first; t0_from_tm1 first
+            return flow(clouds, [tf.matmul(c[:, :3], m[:3, :3], transpose_b=True) + m[:3, 3]
+                                 for c, m in zip(clouds[1:], motions)])
+        signature = points + [tf.TensorSpec([4, 4], tf.float32, name=n) for n in names[num_frames:]]
     return tf.function(fn, autograph=False), signature  # no Python control flow on tensors to convert
 
 
@@ -232,8 +243,9 @@ def check_graph(proto, variant: str, pose_inputs: str) -> None:
             problems += [f"float64 initializer {t.name}" for t in g.initializer
                          if t.data_type == onnx.TensorProto.DOUBLE]
     names = [i.name for i in proto.graph.input]
-    if names != list(input_names(pose_inputs)):
-        problems.append(f"inputs {names}, expected {list(input_names(pose_inputs))}")
+    expected = list(input_names(pose_inputs, max(2, num_frames_of(names))))
+    if names != expected:
+        problems.append(f"inputs {names}, expected {expected}")
     if [o.name for o in proto.graph.output] != list(OUTPUT_NAMES):
         problems.append(f"outputs {[o.name for o in proto.graph.output]}, expected {list(OUTPUT_NAMES)}")
     if problems:
@@ -243,7 +255,8 @@ def check_graph(proto, variant: str, pose_inputs: str) -> None:
 # -- running it with onnxruntime ------------------------------------------------------------------------------------
 
 class OnnxFlowPredictor(ServingPredictor):
-    """An exported ONNX file under onnxruntime (CPU): `predictor(points_tm1, points_t0, pose_tm1, pose_t0)` ->
+    """An exported ONNX file under onnxruntime (CPU): `predictor(points_tm1, points_t0, pose_tm1, pose_t0)` (a model of
+    more sweeps: every cloud oldest first, then every pose, `ff3d_tf.predictor.serving_names`) ->
     {"flow_mps" [N0,3], "point_valid" [N0]} as NumPy, whatever the file's `pose_inputs`; a
     `ff3d_tf.predictor.Predictor` too (`predict(batch, example)` calls it with the pair's raw clouds).
 
@@ -265,10 +278,13 @@ class OnnxFlowPredictor(ServingPredictor):
             raise ValueError(f"{path}: not written by ff3d_tf's ONNX export (metadata {missing} missing)")
         self.variant, self.pose_inputs = meta["ff3d_variant"], meta["ff3d_pose_inputs"]
         _check_choice(f"{path}: pose_inputs", self.pose_inputs, POSE_INPUTS)
+        self.num_frames = num_frames_of([i.name for i in self.session.get_inputs()])
 
-    def feeds(self, points_tm1, points_t0, pose_tm1, pose_t0) -> dict:
-        """The session's inputs for one pair, after the checks."""
-        values = {"points_tm1": points_tm1, "points_t0": points_t0, "pose_tm1": pose_tm1, "pose_t0": pose_t0}
+    def feeds(self, *clouds_and_poses, **by_name) -> dict:
+        """The session's inputs for one example (clouds oldest first, then their poses; or by name), after the
+        checks."""
+        point_names, pose_names = serving_names(self.num_frames)
+        values = self.arguments(self.path, self.num_frames, clouds_and_poses, by_name)
         for name, value in values.items():
             dtype, shape = (np.float32, (None, POINT_WIDTH)) if name.startswith("points") else (np.float64, (4, 4))
             a = np.asarray(value)
@@ -277,15 +293,16 @@ class OnnxFlowPredictor(ServingPredictor):
                 raise ValueError(f"{self.path}: input {name} must be {np.dtype(dtype).name} [{want}], got "
                                  f"{a.dtype.name} {list(a.shape)}")
             values[name] = a
-        for name in ("pose_tm1", "pose_t0"):
+        for name in pose_names:
             problem = geometry.pose_problem_np(values[name], name)
             if problem:
                 raise ValueError(f"{self.path}: {problem}")
         if self.pose_inputs == "world_float64":
             return values
-        t0_from_tm1 = geometry.t0_from_tm1_np(values["pose_t0"], values["pose_tm1"]).astype(np.float32)
-        return {"points_tm1": values["points_tm1"], "points_t0": values["points_t0"], "t0_from_tm1": t0_from_tm1}
+        motions = {f"t0_from_{name[len('pose_'):]}": geometry.t0_from_tm1_np(values["pose_t0"], values[name])
+                   .astype(np.float32) for name in pose_names[:-1]}
+        return {**{n: values[n] for n in point_names}, **motions}
 
-    def __call__(self, points_tm1, points_t0, pose_tm1, pose_t0) -> dict:
-        flow, valid = self.session.run(list(OUTPUT_NAMES), self.feeds(points_tm1, points_t0, pose_tm1, pose_t0))
+    def __call__(self, *clouds_and_poses, **by_name) -> dict:
+        flow, valid = self.session.run(list(OUTPUT_NAMES), self.feeds(*clouds_and_poses, **by_name))
         return {"flow_mps": flow, "point_valid": valid}

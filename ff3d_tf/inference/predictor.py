@@ -20,7 +20,7 @@ import tensorflow as tf
 
 from ff3d_tf import xla_export_dir
 from ff3d_tf.checkpoints import restore_model
-from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.config import ConfigError, ExperimentConfig
 from ff3d_tf.model.forward import ModelPredictor
 from ff3d_tf.predictor import Predictor
 
@@ -44,15 +44,22 @@ def predictor_kind(path: str) -> str:
 
 def load_predictor(cfg: ExperimentConfig, path: str) -> Predictor:
     """The model at `path` (an ONNX file, a SavedModel or portable XLA export directory, a model_dir or a checkpoint
-    prefix) as a `Predictor`; `cfg` builds the model of a checkpoint (the exports carry their own)."""
+    prefix) as a `Predictor`; `cfg` builds the model of a checkpoint (the exports carry their own). An export that
+    reads another number of sweeps than `cfg.data.num_frames` (the examples the caller will make) is a ConfigError."""
     kind = predictor_kind(path)
     if kind == "onnx":
         from ff3d_tf.inference.onnx_export import OnnxFlowPredictor
-        return OnnxFlowPredictor(path)
-    if kind == "saved_model":
+        predictor = OnnxFlowPredictor(path)
+    elif kind == "saved_model":
         from ff3d_tf.inference.saved_model import SavedModelPredictor
-        return SavedModelPredictor(path)
-    if kind == "xla":
+        predictor = SavedModelPredictor(path)
+    elif kind == "xla":
         from ff3d_tf.inference.xla_artifact import XlaPredictor
-        return XlaPredictor(path)
-    return ModelPredictor(restore_model(cfg, path), cfg.model.jit_compile)
+        predictor = XlaPredictor(path)
+    else:
+        return ModelPredictor(restore_model(cfg, path), cfg.model.jit_compile)
+    if predictor.num_frames != cfg.data.num_frames:
+        raise ConfigError(f"{path}: the model reads {predictor.num_frames} sweeps per example; the config has "
+                          f"data.num_frames={cfg.data.num_frames}: set data.num_frames={predictor.num_frames} (and "
+                          "the model.temporal it was trained with)")
+    return predictor

@@ -1,7 +1,8 @@
 """SavedModel export for serving: raw clouds + poses in, ego compensation inside, flow out.
 
 `serving_default(points_tm1 [N1,5], points_t0 [N0,5], pose_tm1 [4,4] float64, pose_t0 [4,4] float64)` where each
-cloud holds x, y, z, intensity, elongation in its own vehicle frame and poses are vehicle -> world. Returns
+cloud holds x, y, z, intensity, elongation in its own vehicle frame and poses are vehicle -> world (a model of more
+sweeps takes every cloud, oldest first, then every pose: `ff3d_tf.predictor.serving_names`). Returns
 `flow_mps` [N0,3] (m/s, vehicle frame at t0) and `point_valid` [N0] bool. One trace serves every N0, N1 (0 included):
 point counts are padded inside to the buckets of `ff3d_tf.data.pairs.bucket_size`, and the XLA-compiled model runs once
 per bucket.
@@ -10,7 +11,7 @@ Inputs are checked inside the signature (so every client gets the same rules) an
 `SavedModelPredictor`:
 - each pose must be a rigid transform: all 16 entries finite, bottom row [0, 0, 0, 1] and a rotation R with
   max |R^T R - I| <= `geometry.POSE_RIGIDITY_TOLERANCE` and det R > 0; else `InvalidArgumentError` (signature) or
-  `ValueError` (predictor) naming `pose_tm1` or `pose_t0` and the rule broken;
+  `ValueError` (predictor) naming the pose (`pose_tm1`, `pose_t0`, ...) and the rule broken;
 - points with a NaN/Inf coordinate or feature are not errors: they are masked like points outside the grid
   (`point_valid` false, flow 0);
 - dtype, rank and width are fixed by the signature ([N,5] float32 clouds, [4,4] float64 poses); N may be 0.
@@ -19,13 +20,11 @@ from __future__ import annotations
 
 import tensorflow as tf
 
-from ff3d_tf import geometry
+from ff3d_tf import geometry, schema
 from ff3d_tf.data.pairs import bucket_size_tf
 from ff3d_tf.model import plan as plan_lib
 from ff3d_tf.model.fastflow3d import FastFlow3D
-from ff3d_tf.predictor import ServingPredictor
-
-POSE_NAMES = ("pose_tm1", "pose_t0")
+from ff3d_tf.predictor import ServingPredictor, num_frames_of, serving_names
 
 
 def _pose_assertions(pose, name: str) -> list:
@@ -42,26 +41,33 @@ class FlowServingModule(tf.Module):
         inline = bool(jit_compile)  # the whole forward in this XLA program: the model's stages inline
         self._infer = tf.function(lambda inputs: model(inputs, training=False, inline_stages=inline),
                                   jit_compile=jit_compile)
+        point_names, pose_names = serving_names(model.num_frames)
+        self.serve = tf.function(self._serve, input_signature=(
+            [tf.TensorSpec([None, 5], tf.float32, name=n) for n in point_names] +
+            [tf.TensorSpec([4, 4], tf.float64, name=n) for n in pose_names]))
 
     def _pad(self, points, n):
         target = bucket_size_tf(n, self.bucket_base)
         return tf.pad(points, [[0, target - n], [0, 0]])[None], tf.sequence_mask(n, target)[None]
 
-    @tf.function(input_signature=[tf.TensorSpec([None, 5], tf.float32, name="points_tm1"),
-                                  tf.TensorSpec([None, 5], tf.float32, name="points_t0"),
-                                  tf.TensorSpec([4, 4], tf.float64, name="pose_tm1"),
-                                  tf.TensorSpec([4, 4], tf.float64, name="pose_t0")])
-    def serve(self, points_tm1, points_t0, pose_tm1, pose_t0):
-        checks = _pose_assertions(pose_tm1, "pose_tm1") + _pose_assertions(pose_t0, "pose_t0")
+    def _serve(self, *clouds_and_poses):
+        """The clouds, oldest first, then their poses (`serving_names`)."""
+        num_frames = len(clouds_and_poses) // 2
+        clouds, poses = clouds_and_poses[:num_frames][::-1], clouds_and_poses[num_frames:][::-1]  # t0 first
+        names = serving_names(num_frames)[1][::-1]
+        checks = [a for pose, name in zip(poses, names) for a in _pose_assertions(pose, name)]
         with tf.control_dependencies(checks):  # no flow from a pose that is not rigid
-            pose_tm1, pose_t0 = tf.identity(pose_tm1), tf.identity(pose_t0)
-        n0, n1 = tf.shape(points_t0)[0], tf.shape(points_tm1)[0]
-        xyz_tm1 = geometry.transform_points(points_tm1[:, :3], geometry.t0_from_tm1(pose_t0, pose_tm1))
-        p0, m0 = self._pad(points_t0, n0)
-        p1, m1 = self._pad(tf.concat([xyz_tm1, points_tm1[:, 3:]], -1), n1)
-        out = self._infer({"points_xyz_t0": p0[..., :3], "point_features_t0": p0[..., 3:], "point_mask_t0": m0,
-                           "points_xyz_tm1_in_t0": p1[..., :3], "point_features_tm1": p1[..., 3:],
-                           "point_mask_tm1": m1})
+            poses = [tf.identity(pose) for pose in poses]
+        inputs = {}
+        for k, (cloud, points, pose) in enumerate(zip(schema.sweep_clouds(num_frames), clouds, poses)):
+            keys = schema.cloud_keys(cloud)
+            if k:
+                xyz = geometry.transform_points(points[:, :3], geometry.t0_from_tm1(poses[0], pose))
+                points = tf.concat([xyz, points[:, 3:]], -1)
+            padded, mask = self._pad(points, tf.shape(points)[0])
+            inputs.update({keys["xyz"]: padded[..., :3], keys["features"]: padded[..., 3:], keys["mask"]: mask})
+        out = self._infer(inputs)
+        n0 = tf.shape(clouds[0])[0]
         return {"flow_mps": out["flow_mps"][0, :n0], "point_valid": out["point_valid"][0, :n0]}
 
 
@@ -82,18 +88,19 @@ class SavedModelPredictor(ServingPredictor):
     the call. One instance may be called from several threads at once (the loaded function holds no per-call state).
     """
 
-    _SPECS = {"points_tm1": (tf.float32, (None, 5)), "points_t0": (tf.float32, (None, 5)),
-              "pose_tm1": (tf.float64, (4, 4)), "pose_t0": (tf.float64, (4, 4))}
-
     def __init__(self, path: str):
         self.path = path
         self.loaded = tf.saved_model.load(path)
         self.fn = self.loaded.signatures["serving_default"]
+        self.num_frames = num_frames_of(self.fn.structured_input_signature[1])
+        self.point_names, self.pose_names = serving_names(self.num_frames)
+        self._specs = {**{n: (tf.float32, (None, 5)) for n in self.point_names},
+                       **{n: (tf.float64, (4, 4)) for n in self.pose_names}}
 
-    def __call__(self, points_tm1, points_t0, pose_tm1, pose_t0) -> dict:
-        values = {"points_tm1": points_tm1, "points_t0": points_t0, "pose_tm1": pose_tm1, "pose_t0": pose_t0}
+    def __call__(self, *clouds_and_poses, **by_name) -> dict:
+        values = self.arguments(self.path, self.num_frames, clouds_and_poses, by_name)
         tensors = {}
-        for name, (dtype, shape) in self._SPECS.items():
+        for name, (dtype, shape) in self._specs.items():
             t = tf.convert_to_tensor(values[name])
             if t.dtype != dtype or t.shape.rank != len(shape):
                 raise ValueError(f"{self.path}: input {name} must be {dtype.name} of rank {len(shape)}, got "
@@ -102,7 +109,7 @@ class SavedModelPredictor(ServingPredictor):
                 shape_text = ", ".join("N" if d is None else str(d) for d in shape)
                 raise ValueError(f"{self.path}: input {name} must have shape [{shape_text}], got {t.shape}")
             tensors[name] = t
-        for name in POSE_NAMES:
+        for name in self.pose_names:
             problem = geometry.pose_problem_np(tensors[name].numpy(), name)
             if problem:
                 raise ValueError(f"{self.path}: {problem}")

@@ -12,7 +12,6 @@ import numpy as np
 from ff3d_tf import xla_program
 from ff3d_tf.xla_export_dir import ExportFormatError, load_artifact, load_weights, read_manifest
 
-NUM_INPUTS = 6  # the model inputs of `manifest["input_keys"]`
 
 
 def artifact_name(padded_points: int, precision: str) -> str:
@@ -20,9 +19,11 @@ def artifact_name(padded_points: int, precision: str) -> str:
 
 
 def load_forward(export_dir: str, entry: dict, num_weights: int):
-    """The `jax.export.Exported` of one forward entry of the manifest (its argument count checked)."""
-    return load_artifact(export_dir, entry, num_weights + NUM_INPUTS, 2,
-                         f"{num_weights} weights + {NUM_INPUTS} inputs -> 2 outputs")
+    """The `jax.export.Exported` of one forward entry of the manifest (its argument count checked: the weights, then
+    the model inputs of `manifest["input_keys"]`, three per sweep)."""
+    num_inputs = len(read_manifest(export_dir)["input_keys"])
+    return load_artifact(export_dir, entry, num_weights + num_inputs, 2,
+                         f"{num_weights} weights + {num_inputs} inputs -> 2 outputs")
 
 
 class CompiledForward:
@@ -67,6 +68,7 @@ class XlaPredictor:
     def __init__(self, export_dir: str, precision: str = "float32"):
         self.export_dir = export_dir
         self.manifest = read_manifest(export_dir)
+        self.num_frames = len(self.manifest["input_keys"]) // 3  # three inputs per sweep
         self.weights = load_weights(export_dir, self.manifest)
         by_size = {e["padded_points"]: e for e in self.manifest["artifacts"]
                    if e["batch_size"] == 1 and e["precision"] == precision}
@@ -91,7 +93,7 @@ class XlaPredictor:
 
     def predict(self, batch, example):
         inputs = {k: np.asarray(batch[k]) for k in self.manifest["input_keys"]}
-        forward, size = self._forward(max(inputs["point_mask_t0"].shape[1], inputs["point_mask_tm1"].shape[1]))
+        forward, size = self._forward(max(x.shape[1] for k, x in inputs.items() if k.startswith("point_mask_")))
         # [1,P,...] -> [1,size,...]: zeros, masks False
         padded = [np.pad(x, [(0, 0), (0, size - x.shape[1])] + [(0, 0)] * (x.ndim - 2))
                   for x in inputs.values()]

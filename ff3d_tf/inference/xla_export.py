@@ -29,7 +29,7 @@ from ff3d_tf import xla_export_dir, xla_program
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data.pairs import bucket_size
 from ff3d_tf.inference import xla_artifact
-from ff3d_tf.schema import MODEL_INPUT_KEYS
+from ff3d_tf.schema import model_input_keys
 from ff3d_tf.xla_export_dir import OUTPUT_KEYS, input_specs, model_weights, tracing_model
 
 PLATFORMS = xla_program.PLATFORMS
@@ -49,14 +49,16 @@ def forward_hlo(model, batch_size: int, padded_points: int, tf32: bool = False) 
     """
     num_trainable = len(model.trainable_variables)
     num_weights = len(model_weights(model))
+    keys = model_input_keys(model.num_frames)
 
     def forward(*flat):
         outputs, _ = model.stateless_call(list(flat[:num_trainable]), list(flat[num_trainable:num_weights]),
-                                          dict(zip(MODEL_INPUT_KEYS, flat[num_weights:])), training=False,
+                                          dict(zip(keys, flat[num_weights:])), training=False,
                                           inline_stages=True)
         return tuple(outputs[k] for k in OUTPUT_KEYS)
 
-    specs = [tf.TensorSpec(v.shape, v.dtype) for v in model_weights(model)] + input_specs(batch_size, padded_points)
+    specs = [tf.TensorSpec(v.shape, v.dtype) for v in model_weights(model)] + input_specs(batch_size, padded_points,
+                                                                                          model.num_frames)
     return xla_program.traced_hlo(forward, specs, tf32)
 
 
@@ -93,9 +95,10 @@ def _reference(model, manifest: dict, rng: np.random.Generator) -> dict:
     if forward is None:
         return {}
     inputs = xla_export_dir.random_inputs(manifest, forward, rng)
+    keys = manifest["input_keys"]
     out = tf.function(lambda x: model(x, training=False, inline_stages=True), jit_compile=True)(
-        dict(zip(MODEL_INPUT_KEYS, inputs)))
-    return {**{f"forward/{k}": a for k, a in zip(MODEL_INPUT_KEYS, inputs)},
+        dict(zip(keys, inputs)))
+    return {**{f"forward/{k}": a for k, a in zip(keys, inputs)},
             **{f"forward/out/{k}": out[k].numpy() for k in OUTPUT_KEYS},
             "forward/padded_points": np.int64(forward["padded_points"])}
 

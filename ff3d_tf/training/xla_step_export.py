@@ -18,7 +18,7 @@ from ff3d_tf import xla_export_dir, xla_program
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data.pairs import bucket_size
 from ff3d_tf.model import step as step_lib
-from ff3d_tf.schema import MODEL_INPUT_KEYS
+from ff3d_tf.schema import model_input_keys
 from ff3d_tf.training.xla_step_runner import TRAIN_LABEL_KEYS, initial_train_state, random_labels, train_artifact_name
 from ff3d_tf.xla_export_dir import input_specs, model_weights, tracing_model
 
@@ -47,10 +47,11 @@ def train_step_fn(cfg: ExperimentConfig, model, batch_size: int):
     layout = step_lib.TrainState([0] * num_weights, [0] * num_stats, [0] * num_weights, [0] * num_weights, 0)
     num_state = len(tf.nest.flatten(layout))
     train_step = step_lib.train_step_fn(cfg, step_lib.loss_and_grads_fn(cfg, model, batch_size, inline_stages=True))
+    keys = model_input_keys(model.num_frames) + TRAIN_LABEL_KEYS
 
     def flat_step(*flat):
         state = tf.nest.pack_sequence_as(layout, list(flat[:num_state]))
-        batch = dict(zip(MODEL_INPUT_KEYS + TRAIN_LABEL_KEYS, flat[num_state:]))
+        batch = dict(zip(keys, flat[num_state:]))
         batch["point_mask_t0"] = tf.cast(batch["point_mask_t0"], tf.bool)
         result = train_step(state, batch)
         return (*tf.nest.flatten(result.state), result.loss, result.grad_norm)
@@ -62,8 +63,8 @@ def train_step_specs(model, batch_size: int, padded_points: int) -> list[tf.Tens
     """Argument specs of `train_step_fn`'s step for one bucket."""
     weights = model.trainable_variables
     state = [tf.TensorSpec(v.shape, v.dtype) for v in weights + model.non_trainable_variables + weights + weights]
-    return (state + [tf.TensorSpec([], tf.int32, name="iterations")] + input_specs(batch_size, padded_points)
-            + label_specs(batch_size, padded_points))
+    return (state + [tf.TensorSpec([], tf.int32, name="iterations")]
+            + input_specs(batch_size, padded_points, model.num_frames) + label_specs(batch_size, padded_points))
 
 
 def train_step_hlo(cfg: ExperimentConfig, model, batch_size: int, padded_points: int, tf32: bool = False) -> bytes:
@@ -83,7 +84,7 @@ def _reference(cfg: ExperimentConfig, model, manifest: dict, rng: np.random.Gene
     state = initial_train_state([v.numpy() for v in model_weights(model)], manifest)
     with xla_program.tensor_float_32(False):
         results = tf.function(train_step_fn(cfg, model, b), jit_compile=True)(*state, *batch)
-    return {**{f"train/{k}": a for k, a in zip(MODEL_INPUT_KEYS + TRAIN_LABEL_KEYS, batch)},
+    return {**{f"train/{k}": a for k, a in zip(tuple(manifest["input_keys"]) + TRAIN_LABEL_KEYS, batch)},
             "train/out/loss": results[-2].numpy(), "train/out/grad_norm": results[-1].numpy(),
             "train/batch_size": np.int64(b), "train/padded_points": np.int64(p)}
 

@@ -24,8 +24,9 @@ def train_artifact_name(batch_size: int, padded_points: int, precision: str) -> 
 def load_train_step(export_dir: str, entry: dict, manifest: dict):
     """The `jax.export.Exported` of one `train_artifacts` entry (its argument and result counts checked)."""
     state = len(manifest["weights"]) + 2 * manifest["num_trainable"] + 1
-    return load_artifact(export_dir, entry, state + 6 + len(TRAIN_LABEL_KEYS), state + 2,
-                         f"{state} state arrays + 6 inputs + {len(TRAIN_LABEL_KEYS)} labels -> {state} + loss, "
+    inputs = len(manifest["input_keys"])
+    return load_artifact(export_dir, entry, state + inputs + len(TRAIN_LABEL_KEYS), state + 2,
+                         f"{state} state arrays + {inputs} inputs + {len(TRAIN_LABEL_KEYS)} labels -> {state} + loss, "
                          f"grad_norm")
 
 
