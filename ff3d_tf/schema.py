@@ -116,6 +116,14 @@ for _k in range(2, MAX_NUM_FRAMES):
                                                     "float16")
 
 
+# An example of more than 2 sweeps near the start of its log has fewer real past sweeps than it reads: the oldest
+# one it has (the log's first sweep) stands in for those missing, as the DeltaFlow authors' evaluation loader clamps
+# history to a scene's first frame (KTH-RPL/OpenSceneFlow, src/dataset.py). This bool scalar says whether every past
+# sweep is its own; training reads only examples where it is True (their training loader never starts a sample
+# without its history); evaluation, prediction and the submission read every example.
+FULL_HISTORY_KEY = "full_history"
+
+
 def sweep_clouds(num_frames: int) -> tuple[str, ...]:
     """The clouds of an example of `num_frames` sweeps, newest first: ("t0", "tm1", ..., "tm{num_frames-1}")."""
     return ("t0",) + tuple(f"tm{k}" for k in range(1, num_frames))

@@ -109,8 +109,6 @@ class Manifest:
         if isinstance(self.num_frames, bool) or not isinstance(self.num_frames, int) or \
                 not 2 <= self.num_frames <= schema.MAX_NUM_FRAMES:
             raise bad("num_frames", f"{self.num_frames!r}: an integer in [2, {schema.MAX_NUM_FRAMES}]")
-        if self.num_frames > 2 and self.partner != "previous":
-            raise bad("num_frames", "records of more than 2 sweeps hold past sweeps (partner previous)")
         problem = schema.lidar_selection_problem(self.laser_names, self.returns)
         if problem is not None:
             raise bad("laser_names", problem)
@@ -205,6 +203,8 @@ def serialize_pair(example: dict, precision: str = "exact", extras: tuple[str, .
         features[key] = _bytes_feature(value.astype(f"<{np.dtype(stored).str[1:]}", copy=False).tobytes())
     for key in pose_keys:
         features[key] = _bytes_feature(np.asarray(example[key], "<f8").reshape(4, 4).tobytes())
+    if num_frames > 2:
+        features[schema.FULL_HISTORY_KEY] = _int_feature(bool(example[schema.FULL_HISTORY_KEY]))
     features[TIMESTAMP_KEY] = _int_feature(timestamp_ns)
     features[PARTNER_TIMESTAMP_KEY] = _int_feature(example[PARTNER_TIMESTAMP_KEY])
     features[SEQUENCE_KEY] = _bytes_feature(sequence_id.encode())
@@ -243,7 +243,9 @@ def records_file_name(sequence_id: str) -> str:
 # --- Reading ---------------------------------------------------------------------------------------------------------
 def _feature_spec(manifest: Manifest, extras) -> dict:
     point_keys, count_keys, pose_keys = record_keys(manifest.num_frames)
-    spec = {k: tf.io.FixedLenFeature([], tf.int64) for k in count_keys + (TIMESTAMP_KEY, PARTNER_TIMESTAMP_KEY)}
+    history = (schema.FULL_HISTORY_KEY,) if manifest.num_frames > 2 else ()
+    spec = {k: tf.io.FixedLenFeature([], tf.int64) for k in count_keys + history +
+            (TIMESTAMP_KEY, PARTNER_TIMESTAMP_KEY)}
     spec.update({k: tf.io.FixedLenFeature([], tf.string) for k in point_keys + tuple(extras) + pose_keys +
                  (SEQUENCE_KEY,)})
     return spec
@@ -288,6 +290,8 @@ def record_parser(manifest: Manifest, extras: tuple[str, ...] = ()):
                 ex[key] = value != 0 if field.model_dtype == "bool" else tf.cast(value, field.model_dtype)
         ex.update(counts)
         ex.update({k: f[k] for k in METADATA_KEYS})
+        if manifest.num_frames > 2:
+            ex[schema.FULL_HISTORY_KEY] = f[schema.FULL_HISTORY_KEY] != 0
         return ex
 
     return parse

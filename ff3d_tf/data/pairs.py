@@ -5,8 +5,9 @@ Per segment file: records are decoded in graph (parallel), consecutive frames ar
 `max_frame_gap_s`; others are skipped), the t-1 cloud is moved into the vehicle frame at t0 with
 T = inv(pose_t0) @ pose_tm1 (paper appendix), and the study options (class ablation, density, ground removal) apply.
 With `data.num_frames` = N > 2, each example is the current frame and the N - 1 frames before it in the file, each
-consecutive two within `max_frame_gap_s`, every past cloud moved into the vehicle frame at t0 by its own pose; the
-first N - 2 frames that have a t-1 but not a full history give no example (as a window across a gap gives none).
+consecutive two within `max_frame_gap_s`, every past cloud moved into the vehicle frame at t0 by its own pose; a frame
+with a t-1 but fewer older frames takes the file's first frame for those it lacks (`schema.FULL_HISTORY_KEY` False:
+evaluation reads it, training does not).
 Batches are padded to point-count buckets (see `bucket_size`) so that XLA compiles once per bucket.
 """
 from __future__ import annotations
@@ -164,8 +165,10 @@ def _frames_dataset(path: str, cfg: ExperimentConfig, inference_only: bool, skip
 
 
 def consecutive_frames(frames: tf.data.Dataset, num_frames: int = 2) -> tf.data.Dataset:
-    """Each `num_frames` consecutive frames as a tuple, newest first ((frame t0, frame t-1) for the pair), by a scan
-    that carries the previous `num_frames - 1` frames.
+    """(window, real) for each frame after the first: the window is `num_frames` frames as a tuple, newest first
+    ((frame t0, frame t-1) for the pair), and `real` how many of its past frames are their own (the others, missing
+    at the start of the file, are the file's first frame: `schema.FULL_HISTORY_KEY`). By a scan that carries the
+    previous `num_frames - 1` frames, all of them the first frame until there are more.
 
     Not `Dataset.window`: a window ends silently when its input fails on its first element, so a file truncated
     inside its first records gave no pairs and no error (found by `ff3d_tf.fuzz`).
@@ -173,31 +176,36 @@ def consecutive_frames(frames: tf.data.Dataset, num_frames: int = 2) -> tf.data.
     none = {k: tf.zeros([d or 0 for d in spec.shape.as_list()], spec.dtype) for k, spec in frames.element_spec.items()}
 
     def step(state, frame_t0):
-        previous, count = state  # the frames before this one, newest first; how many of them are real
+        previous, count = state  # the frames before this one, newest first; how many frames came before it
         window = (frame_t0,) + previous
-        return (window[:-1], tf.minimum(count + 1, num_frames - 1)), (window, count >= num_frames - 1)
+        carried = tf.nest.map_structure(lambda first, later: tf.cond(count > 0, lambda: later, lambda: first),
+                                        (frame_t0,) * (num_frames - 1), window[:-1])
+        return (carried, count + 1), (window, tf.minimum(count, num_frames - 1))
 
-    windows = frames.scan(((none,) * (num_frames - 1), 0), step)
-    return windows.filter(lambda window, full: full).map(lambda window, full: window)
+    windows = frames.scan(((none,) * (num_frames - 1), tf.constant(0, tf.int64)), step)
+    return windows.filter(lambda window, real: real > 0)
 
 
 def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool, metadata: bool = False):
     frames = _frames_dataset(path, cfg, inference_only, skip_bad_records)
     max_gap_us = int(round(cfg.data.max_frame_gap_s * 1e6))
 
-    def to_example(*window):  # newest first
+    def to_example(window, real):  # newest first
         seed = tf.stack([tf.cast(window[0]["timestamp_micros"] % 2147483647, tf.int32), 7])
         ex = make_example(list(window), cfg, seed)
+        if len(window) > 2:
+            ex[schema.FULL_HISTORY_KEY] = real == len(window) - 1
         if metadata:
             ex[pair_records.TIMESTAMP_KEY] = window[0]["timestamp_micros"] * 1000
             ex[pair_records.PARTNER_TIMESTAMP_KEY] = window[1]["timestamp_micros"] * 1000
             ex[pair_records.SEQUENCE_KEY] = tf.strings.split(path, "/")[-1]
         return ex
 
-    def close_in_time(*window):  # every two consecutive sweeps in order and within the gap
+    def close_in_time(window, real):  # every two consecutive real sweeps in order and within the gap
         gaps_us = tf.stack([newer["timestamp_micros"] - older["timestamp_micros"]
                             for newer, older in zip(window[:-1], window[1:])])
-        return tf.reduce_all((gaps_us > 0) & (gaps_us <= max_gap_us))
+        checked = tf.range(len(window) - 1, dtype=real.dtype) < real
+        return tf.reduce_all(((gaps_us > 0) & (gaps_us <= max_gap_us)) | ~checked)
 
     windows = consecutive_frames(frames, cfg.data.num_frames).filter(close_in_time)
     return windows.map(to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
@@ -224,6 +232,8 @@ def _pairs_of_records(path, cfg: ExperimentConfig, manifest, extras: tuple, meta
         micros = record[pair_records.TIMESTAMP_KEY] // 1000  # the seed of the decoding path (`_pairs_of_file`)
         ex = _apply_studies(points, cfg, tf.stack([tf.cast(micros % 2147483647, tf.int32), 7]))
         ex.update({k: record[k] for k in pose_keys})
+        if schema.FULL_HISTORY_KEY in record:
+            ex[schema.FULL_HISTORY_KEY] = record[schema.FULL_HISTORY_KEY]
         ex.update({k: tf.shape(ex[schema.cloud_keys(k[len("num_points_"):])["xyz"]])[0] for k in count_keys})
         if metadata:
             ex.update({k: record[k] for k in pair_records.METADATA_KEYS})

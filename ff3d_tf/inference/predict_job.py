@@ -25,6 +25,7 @@ and, given `rerun_path`, a Rerun recording of both clouds and the flow arrows of
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import os
 from typing import Callable, Iterator
@@ -133,25 +134,30 @@ def _read_sweep(path: str, pose: np.ndarray | None, intensity_scale: float | Non
 
 def _user_cloud_pairs(sweeps: list[str], poses: list[np.ndarray] | None, intensity_scale: float | None,
                       cfg: ExperimentConfig, log: Log, timestamps_ns: list[int]) -> Iterator[PairToPredict]:
-    """A pair of each two consecutive point files of `sweeps`, named after the t0 file, under `raw_pair_config`, with
-    the pair's times (`timestamps_ns`, one per sweep)."""
+    """An example of each `data.num_frames` consecutive point files of `sweeps` (a pair of each two for the paper's
+    model), named after its t0 (newest) file, under `raw_pair_config`, with the pair's times (`timestamps_ns`, one
+    per sweep). With N sweeps per example, the first N - 1 files get no prediction of their own."""
+    num_frames = cfg.data.num_frames
     if poses is None:
-        log("no poses: the t-1 cloud of each pair is taken as already in the t0 vehicle frame (no ego-motion "
-            "compensation)")
+        log(f"no poses: the {'t-1 cloud of each pair is' if num_frames == 2 else 'past clouds of each example are'} "
+            "taken as already in the t0 vehicle frame (no ego-motion compensation)")
+    if num_frames > 2:
+        log(f"data.num_frames={num_frames}: each prediction reads its sweep and the {num_frames - 1} before it; the "
+            f"first {num_frames - 1} sweeps get none of their own")
     raw_cfg = pairs.raw_pair_config(cfg)
-    notes, frame_tm1 = _Notes(log), None
+    notes, previous = _Notes(log), collections.deque(maxlen=num_frames - 1)  # newest first
     for i, path in enumerate(sweeps):
         frame_t0 = _read_sweep(path, None if poses is None else poses[i], intensity_scale, notes)
-        if frame_tm1 is not None:
-            ex = pairs.make_pair({k: tf.constant(v) for k, v in frame_tm1.items()},
-                                 {k: tf.constant(v) for k, v in frame_t0.items()}, raw_cfg, seed=tf.constant([1, 7]))
+        if len(previous) == num_frames - 1:
+            ex = pairs.make_example([{k: tf.constant(v) for k, v in f.items()} for f in (frame_t0, *previous)],
+                                    raw_cfg, seed=tf.constant([1, 7]))
             ex[pair_records.TIMESTAMP_KEY] = tf.constant(timestamps_ns[i], tf.int64)
             ex[pair_records.PARTNER_TIMESTAMP_KEY] = tf.constant(timestamps_ns[i - 1], tf.int64)
             for batch, example in pairs.padded_singletons(tf.data.Dataset.from_tensors(ex),
                                                           cfg.data.point_bucket_base):
                 name = os.path.splitext(os.path.basename(path))[0]
                 yield PairToPredict(name, i, batch, {k: v.numpy() for k, v in example.items()})
-        frame_tm1 = frame_t0
+        previous.appendleft(frame_t0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,8 +176,9 @@ class SweepsDirectory:
         sweeps = point_files.list_sweeps(self.path)
         poses = point_files.sweep_poses(self.path, sweeps)
         stamps, origin = sequences.sweep_times_ns(self.path, len(sweeps), self.sweep_period_s)
-        log(f"{self.path}: {len(sweeps)} sweeps, {len(sweeps) - 1} pairs, "
-            f"{'poses given' if poses is not None else 'no poses'}")
+        n = cfg.data.num_frames
+        examples = f"{len(sweeps) - 1} pairs" if n == 2 else f"{max(len(sweeps) - n + 1, 0)} examples of {n} sweeps"
+        log(f"{self.path}: {len(sweeps)} sweeps, {examples}, {'poses given' if poses is not None else 'no poses'}")
         log(f"{self.path}: sweep times from {origin}")
         return _user_cloud_pairs(sweeps, poses, self.intensity_scale, cfg, log, stamps)
 
@@ -196,6 +203,9 @@ class PointFilePair:
         return self.points_t0
 
     def pairs(self, cfg: ExperimentConfig, log: Log = print_line) -> Iterator[PairToPredict]:
+        if cfg.data.num_frames != 2:
+            raise ValueError(f"{self.points_t0}: a pair of point files serves a model of 2 sweeps; this one reads "
+                             f"data.num_frames={cfg.data.num_frames}: give a directory of sweeps (--sweeps_dir)")
         poses = None if self.pose_t0 is None else [point_files.read_pose(self.pose_tm1),
                                                    point_files.read_pose(self.pose_t0)]
         gap_ns = int(round(sequences.check_sweep_period(self.sweep_period_s) * 1e9))

@@ -88,14 +88,20 @@ def check_log(log_dir: str, labels: bool = True) -> None:
 def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig, labels: bool = True) -> dict:
     """The pair record contents (NumPy) of sweep `index` (t0) and sweep `index + 1` (its partner), labelled by the
     cuboids with Argoverse's margin, with `AV2_EXTRAS` and `pair_records.METADATA_KEYS`; every point kept. Without
-    `labels`: the same points and pair, flow 0 and class -1, `AV2_UNLABELLED_EXTRAS` only (no cuboid is read)."""
+    `labels`: the same points and pair, flow 0 and class -1, `AV2_UNLABELLED_EXTRAS` only (no cuboid is read).
+
+    With `data.num_frames` = N > 2 the example also holds the N - 2 sweeps before t0 (newest first, as "tm2", ...:
+    the partner is the next sweep, the history the earlier ones, as the DeltaFlow authors read AV2), each in the t0
+    frame; where the log has fewer, its first sweep stands in (`schema.FULL_HISTORY_KEY` False)."""
     stamps = argoverse2.sweep_timestamps(log_dir)
     if not 0 <= index < len(stamps) - 1:
         raise argoverse2.Argoverse2FormatError(os.path.join(log_dir, "sensors", "lidar"), "file",
                                                f"sweep {index} has no next sweep; the log has {len(stamps)}")
     ts_t0, ts_next = stamps[index], stamps[index + 1]
     f_t0, f_next = argoverse2.read_sweep(log_dir, ts_t0), argoverse2.read_sweep(log_dir, ts_next)
-    for ts, f in ((ts_t0, f_t0), (ts_next, f_next)):
+    ts_history = [stamps[max(index - k, 0)] for k in range(1, cfg.data.num_frames - 1)]
+    history = [argoverse2.read_sweep(log_dir, ts) for ts in ts_history]
+    for ts, f in ((ts_t0, f_t0), (ts_next, f_next), *zip(ts_history, history)):
         if len(f["points_xyz"]) == 0:
             raise argoverse2.Argoverse2FormatError(os.path.join(log_dir, "sensors", "lidar", f"{ts}.feather"),
                                                    "x", "empty sweep: no points")
@@ -107,9 +113,11 @@ def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig, labels: bool
                                           f_t0["pose"], f_next["pose"], dt_s, enlarge_m=argoverse2.CUBOID_MARGIN_M,
                                           with_instances=True)
         f_t0["flow_mps"], f_t0["class_id"] = flow, cls
-    ex = make_pair({k: tf.constant(v) for k, v in f_next.items()}, {k: tf.constant(v) for k, v in f_t0.items()},
-                   pairs.raw_pair_config(cfg))
+    ex = pairs.make_example([{k: tf.constant(v) for k, v in f.items()} for f in (f_t0, f_next, *history)],
+                            pairs.raw_pair_config(cfg))
     ex = {k: v.numpy() for k, v in ex.items()}
+    if history:
+        ex[schema.FULL_HISTORY_KEY] = index >= len(history)
     if labels:
         categories = np.array([argoverse2.scene_flow_category_index(str(c)) for c in boxes_t0["category"]] + [0],
                               np.int32)
@@ -129,7 +137,8 @@ def records_manifest(cfg: ExperimentConfig, precision: str = "exact", compressio
     return pair_records.Manifest(source="av2", laser_names=(1, 2), returns=(1,), max_frame_gap_s=cfg.data.max_frame_gap_s,
                                  precision=precision, compression=compression,
                                  extras=AV2_EXTRAS if labels else AV2_UNLABELLED_EXTRAS, human_labels=labels,
-                                 partner="next", written_by=written_by).validate("<manifest>")
+                                 partner="next", num_frames=cfg.data.num_frames,
+                                 written_by=written_by).validate("<manifest>")
 
 
 def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifest: pair_records.Manifest) -> dict:
@@ -143,8 +152,14 @@ def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifes
         return {"already_done": 1}
     t0 = time.time()
     counts = {"pairs": 0, "points_t0": 0, "skipped_pairs": 0}
-    num_sweeps = len(argoverse2.sweep_timestamps(log_dir))
+    stamps = argoverse2.sweep_timestamps(log_dir)
+    num_sweeps = len(stamps)
     max_gap_ns = cfg.data.max_frame_gap_s * 1e9
+
+    def history_gap(index: int) -> bool:
+        """Whether a real past sweep of sweep `index`'s example is further than the gap from the one after it."""
+        real = stamps[max(index - cfg.data.num_frames + 2, 0):index + 1]
+        return any(b - a > max_gap_ns for a, b in zip(real[:-1], real[1:]))
 
     def records():
         for index in range(num_sweeps - 1):
@@ -156,12 +171,13 @@ def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifes
                 _LOG.warning("skipped: %s", err)
                 counts["skipped_pairs"] += 1
                 continue
-            if ex[pair_records.PARTNER_TIMESTAMP_KEY] - ex[pair_records.TIMESTAMP_KEY] > max_gap_ns:
+            if ex[pair_records.PARTNER_TIMESTAMP_KEY] - ex[pair_records.TIMESTAMP_KEY] > max_gap_ns or \
+                    history_gap(index):
                 counts["skipped_pairs"] += 1  # a gap in the log: not a pair (data.max_frame_gap_s)
                 continue
             counts["pairs"] += 1
             counts["points_t0"] += int(ex["num_points_t0"])
-            yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras)
+            yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras, manifest.num_frames)
 
     pair_records.write_records_atomically(out_path, records(), manifest.compression)
     counts["bytes"] = tf.io.gfile.stat(out_path).length

@@ -30,6 +30,7 @@ import time
 import numpy as np
 import tensorflow as tf
 
+from ff3d_tf import schema
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import beam_job, pair_records, pairs
 from ff3d_tf.data.files import point_files, sequences
@@ -69,7 +70,8 @@ def records_manifest(cfg: ExperimentConfig, labelled: bool, precision: str = "ex
     return pair_records.Manifest(source=OWN_SOURCE, laser_names=(1,), returns=(1,),
                                  max_frame_gap_s=cfg.data.max_frame_gap_s, precision=precision,
                                  compression=compression, extras=OWN_EXTRAS if labelled else (),
-                                 human_labels=labelled, written_by=written_by).validate("<manifest>")
+                                 human_labels=labelled, num_frames=cfg.data.num_frames,
+                                 written_by=written_by).validate("<manifest>")
 
 
 def check_sequence(directory: str, options: OwnRecordsOptions) -> sequences.SweepSequence:
@@ -107,13 +109,16 @@ def sequence_examples(seq: sequences.SweepSequence, cfg: ExperimentConfig, optio
     """The pair records' contents (NumPy: `schema.PAIR_KEYS`, `pair_records.METADATA_KEYS`, `OWN_EXTRAS` when
     labelled) of every pair of consecutive sweeps of `seq` not further apart than `data.max_frame_gap_s`, in order.
     A bad point file stops here naming it, or with `data.skip_bad_records` skips the pairs it is in (counted in
-    `counts["skipped_pairs"]`, as are the pairs too far apart)."""
+    `counts["skipped_pairs"]`, as are the pairs too far apart). With `data.num_frames` = N > 2 each example also holds
+    the N - 2 sweeps before t-1 (`pairs.make_example`); after the sequence's start, a gap or a skipped file, the
+    oldest sweep since stands in for those missing (`schema.FULL_HISTORY_KEY` False)."""
     counts = counts if counts is not None else {}
     counts.setdefault("skipped_pairs", 0)
     boxes = sequences.read_boxes(seq, dict(options.class_map)) if options.labels else None
     raw_cfg = pairs.raw_pair_config(cfg)
     max_gap_ns = cfg.data.max_frame_gap_s * 1e9
     stems = seq.stems
+    previous = []  # the sweeps since the last break, newest first, with their indices
     frame_tm1 = None
     for i in range(len(seq.sweeps)):
         try:
@@ -123,19 +128,23 @@ def sequence_examples(seq: sequences.SweepSequence, cfg: ExperimentConfig, optio
                 raise
             _LOG.warning("skipped: %s", err)
             counts["skipped_pairs"] += (frame_tm1 is not None) + (i + 1 < len(seq.sweeps))
-            frame_tm1 = None
+            frame_tm1, previous = None, []
             continue
         if frame_tm1 is not None:
             gap_ns = seq.timestamps_ns[i] - seq.timestamps_ns[i - 1]
             if gap_ns > max_gap_ns:
                 counts["skipped_pairs"] += 1  # a gap in the sequence: not a pair (data.max_frame_gap_s)
+                previous = []
             else:
                 labelled, owner = labelled_pair(frame_tm1, frame_t0, None if boxes is None else boxes[stems[i - 1]],
                                                 None if boxes is None else boxes[stems[i]], gap_ns * 1e-9,
                                                 options.box_margin_m)
-                ex = pairs.make_pair({k: tf.constant(v) for k, v in frame_tm1.items()},
-                                     {k: tf.constant(v) for k, v in labelled.items()}, raw_cfg)
+                history = [previous[min(k, len(previous) - 1)] for k in range(1, cfg.data.num_frames - 1)]
+                ex = pairs.make_example([{k: tf.constant(v) for k, v in f.items()}
+                                         for f in (labelled, frame_tm1, *history)], raw_cfg)
                 ex = {k: v.numpy() for k, v in ex.items()}
+                if history:
+                    ex[schema.FULL_HISTORY_KEY] = len(previous) >= cfg.data.num_frames - 1
                 if owner is not None:
                     ex["instance_id_t0"] = owner
                 ex[pair_records.TIMESTAMP_KEY] = seq.timestamps_ns[i]
@@ -143,6 +152,7 @@ def sequence_examples(seq: sequences.SweepSequence, cfg: ExperimentConfig, optio
                 ex[pair_records.SEQUENCE_KEY] = seq.name
                 yield ex
         frame_tm1 = frame_t0
+        previous = [frame_t0] + previous[:schema.MAX_NUM_FRAMES]
 
 
 def write_sequence_records(directory: str, out_dir: str, cfg: ExperimentConfig, manifest: pair_records.Manifest,
@@ -162,7 +172,7 @@ def write_sequence_records(directory: str, out_dir: str, cfg: ExperimentConfig, 
             counts["pairs"] += 1
             counts["points_t0"] += int(ex["num_points_t0"])
             counts["labelled_points_t0"] += int((ex["class_id_t0"] >= 0).sum()) if options.labels else 0
-            yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras)
+            yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras, manifest.num_frames)
 
     pair_records.write_records_atomically(out_path, records(), manifest.compression)
     counts["bytes"] = tf.io.gfile.stat(out_path).length

@@ -276,7 +276,7 @@ def pseudo_label_file(in_path: str, out_dir: str, job: JobOptions, manifest: pai
             counts["points_t0"] += len(flow)
             counts["pseudo_labelled_points"] += int(valid.sum())
             ex[PSEUDO_KEY], ex[PSEUDO_VALID_KEY] = flow, valid
-            yield pair_records.serialize_pair(ex, out_manifest.precision, out_manifest.extras)
+            yield pair_records.serialize_pair(ex, out_manifest.precision, out_manifest.extras, out_manifest.num_frames)
 
     pair_records.write_records_atomically(out_path, records(), out_manifest.compression)
     tf.io.gfile.rmtree(parts)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import tensorflow as tf
 
+from ff3d_tf import schema
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import augment, pair_records, pairs
 
@@ -83,6 +84,8 @@ def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, s
     # data.labels: the human labels or pseudo-labels; the extras the loss reads
     files = training_files(files, cfg)
     ds = pairs.pair_dataset(files, cfg, training_labels=True, extras=loss_extras(files, cfg))
+    if schema.FULL_HISTORY_KEY in ds.element_spec:  # more than 2 sweeps: only examples with all their own history
+        ds = ds.filter(lambda ex: ex[schema.FULL_HISTORY_KEY])
     if shard is not None and not data_service_address:
         ds = ds.shard(*shard)
     if cfg.data.cache_decoded:

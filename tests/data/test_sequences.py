@@ -24,10 +24,12 @@ def test_every_past_sweep_is_moved_into_t0_by_its_own_pose(tiny_segment, tiny_re
     cfg = _sequence_config(tiny_config, 3)
     examples = [{k: v.numpy() for k, v in ex.items()} for ex in pairs.pair_dataset([tiny_segment], cfg)]
     frames = [waymo.decode_frame(r) for r in tiny_records]
-    # 4 frames, 3 sweeps each: frames 2 and 3 have a full history; frame 1 has a t-1 but no t-2 (no example).
-    assert len(examples) == len(frames) - 2
+    # 4 frames, 3 sweeps each: frames 2 and 3 have a full history; frame 1 has a t-1 but no t-2: the file's first
+    # frame (its t-1) stands in for it, as the DeltaFlow authors' evaluation loader clamps history.
+    assert len(examples) == len(frames) - 1
+    assert [bool(ex[schema.FULL_HISTORY_KEY]) for ex in examples] == [False, True, True]
     for i, ex in enumerate(examples):
-        f_t0, f_tm1, f_tm2 = frames[i + 2], frames[i + 1], frames[i]
+        f_t0, f_tm1, f_tm2 = frames[i + 1], frames[i], frames[max(i - 1, 0)]
         np.testing.assert_array_equal(ex["points_xyz_t0"], f_t0["points_xyz"])
         np.testing.assert_allclose(ex["points_xyz_tm1_in_t0"], _in_t0(f_tm1["points_xyz"], f_t0["pose"],
                                                                       f_tm1["pose"]), atol=1e-4)
@@ -36,9 +38,9 @@ def test_every_past_sweep_is_moved_into_t0_by_its_own_pose(tiny_segment, tiny_re
         np.testing.assert_array_equal(ex["pose_tm2"], f_tm2["pose"])
         assert ex["num_points_tm2"] == len(f_tm2["points_xyz"])
         np.testing.assert_array_equal(ex["point_features_tm2"][:, 0], f_tm2["intensity"])
-        # The check has power: the t-2 cloud moved by t-1's pose (a known, different rotation and translation) is
-        # far from the right one.
-        wrong = _in_t0(f_tm2["points_xyz"], f_t0["pose"], f_tm1["pose"])
+        # The check has power: the t-2 cloud moved by t0's own pose (a known, different rotation and translation)
+        # is far from the right one.
+        wrong = _in_t0(f_tm2["points_xyz"], f_t0["pose"], f_t0["pose"])
         assert np.abs(wrong - ex["points_xyz_tm2_in_t0"]).max() > 0.1
 
 
@@ -73,7 +75,7 @@ def test_records_carry_the_past_sweeps_and_refuse_another_number(tiny_segment, t
     records_cfg = replace_config(cfg, {"data.source": "pair_records"})
     decoded = list(pairs.pair_dataset([tiny_segment], cfg))
     read = list(pairs.pair_dataset(files, records_cfg))
-    assert len(read) == len(decoded) == 2
+    assert len(read) == len(decoded) == 3
     for a, b in zip(decoded, read):
         assert set(a) == set(b)
         for k in a:
@@ -91,3 +93,41 @@ def test_a_sequence_of_one_sweep_or_too_many_is_a_config_error(tiny_config):
             replace_config(tiny_config, {"data.num_frames": n, "model.temporal": "delta"})
     with pytest.raises(ConfigError, match="model.temporal=pair"):
         replace_config(tiny_config, {"data.num_frames": 3})
+
+
+def test_training_reads_only_examples_with_their_own_history(tiny_segment, tiny_records, tiny_config):
+    """4 frames, 4 sweeps per example: only the last frame has its 3 past ones, so the repeated training stream is
+    that example alone (the decoded stream also holds the 2 frames with clamped history)."""
+    from ff3d_tf.training import input as training_input
+    cfg = replace_config(_sequence_config(tiny_config, 4), {"data.shuffle_buffer": 1})
+    assert len(list(pairs.pair_dataset([tiny_segment], cfg))) == 3
+    last = len(waymo.decode_frame(tiny_records[-1])["points_xyz"])
+    for batch in training_input.training_dataset([tiny_segment], cfg, 1).take(3):
+        assert bool(batch[schema.FULL_HISTORY_KEY][0])
+        assert int(batch["num_points_t0"][0]) == last
+
+
+def test_av2_records_of_three_sweeps_hold_the_sweep_before_t0(tiny_config, tmp_path):
+    """The real sample log: records of 3 sweeps pair each sweep with the next (the challenge's partner) and hold the
+    sweep before it as "tm2", moved into the t0 frame by its own pose; sweep 0 has none before it and repeats itself
+    (full_history False)."""
+    from conftest import AV2_LOG
+    from ff3d_tf.data.av2 import argoverse2
+    from ff3d_tf.labels import av2
+    cfg = replace_config(tiny_config, {"data.num_frames": 3, "model.temporal": "delta"})
+    stamps = argoverse2.sweep_timestamps(AV2_LOG)
+    out = str(tmp_path / "av2")
+    manifest = av2.records_manifest(cfg)
+    assert (manifest.num_frames, manifest.partner) == (3, "next")
+    pair_records.write_manifest(out, manifest)
+    assert av2.write_log_records(AV2_LOG, out, cfg, manifest)["pairs"] == len(stamps) - 1
+    examples = [{k: v.numpy() for k, v in ex.items()} for ex in pairs.pair_dataset(
+        pairs.list_segment_files(out), replace_config(cfg, {"data.source": "pair_records", "data.crop_to_grid": False}),
+        metadata=True)]
+    assert [bool(ex[schema.FULL_HISTORY_KEY]) for ex in examples] == [i >= 1 for i in range(len(stamps) - 1)]
+    for i, ex in enumerate(examples):
+        assert ex[pair_records.TIMESTAMP_KEY] == stamps[i] and ex[pair_records.PARTNER_TIMESTAMP_KEY] == stamps[i + 1]
+        before = argoverse2.read_sweep(AV2_LOG, stamps[max(i - 1, 0)])
+        np.testing.assert_array_equal(ex["pose_tm2"], before["pose"])
+        np.testing.assert_allclose(ex["points_xyz_tm2_in_t0"], _in_t0(before["points_xyz"], ex["pose_t0"],
+                                                                      before["pose"]), atol=1e-3)
