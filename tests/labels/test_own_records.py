@@ -121,3 +121,19 @@ def test_a_gap_is_skipped_and_the_job_resumes(tiny_config, sequence_dir, tmp_pat
     assert [int(ex[pair_records.TIMESTAMP_KEY]) for ex in _examples(out)] == [stamps[1], stamps[3]]
     again = own_records.run_records_job([gappy], out, tiny_config, own_records.OwnRecordsOptions())
     assert again.get("already_done") == 1 and "pairs" not in again
+
+
+def test_records_of_three_sweeps_equal_the_wod_paths(tiny_segment, tiny_records, tiny_config, sequence_dir, tmp_path):
+    """With data.num_frames=3 the own-sequence records hold the sweep before t-1, clamped to the first sweep at the
+    start, exactly as the WOD path's records of the same frames."""
+    cfg = replace_config(tiny_config, {"data.num_frames": 3, "model.temporal": "delta"})
+    wod_manifest = write_records.wod_manifest(cfg)
+    pair_records.write_manifest(str(tmp_path / "wod"), wod_manifest)
+    write_records.write_segment(tiny_segment, str(tmp_path / "wod"), cfg, wod_manifest)
+    _own_records(sequence_dir, str(tmp_path / "own"), cfg, own_records.OwnRecordsOptions(labels=False))
+    wod, own = _examples(str(tmp_path / "wod")), _examples(str(tmp_path / "own"))
+    assert len(own) == len(wod) == len(tiny_records) - 1
+    assert [bool(o[schema.FULL_HISTORY_KEY]) for o in own] == [False] + [True] * (len(own) - 1)
+    for w, o in zip(wod, own):
+        for key in ("points_xyz_tm2_in_t0", "pose_tm2", "num_points_tm2", schema.FULL_HISTORY_KEY):
+            np.testing.assert_array_equal(o[key], w[key], err_msg=key)
