@@ -1,0 +1,79 @@
+"""Models of several sweeps against the pair, over several seeds: the paper's model and DeFlow's GRU head with
+DeltaFlow's loss on 2 sweeps, and the GRU head on 3 and 5 sweeps (`model.temporal` stack and delta), each trained with
+every seed on the same synthetic records and scored on held-out records beside zero flow, mean ± spread over the
+seeds.
+
+python lab/tools/benchmark_sweeps.py [--out_dir sweeps_out] [--json benchmarks/sweeps_synthetic.json] [--steps 300]
+    [--seeds 0,1,2] [--formats wod,av2] [--variants paper_pair,delta_3,...] [--train_segments 4 --eval_segments 2
+     --frames_per_segment 8 --lidar_scale 0.12 --av2_points_per_sweep 6000] [--config configs/synthetic_cpu.yaml]
+    [--set key=value ...]
+
+Variants (lab/training/sweeps_benchmark.py VARIANTS): paper_pair, gru_deltaflow_pair, stack_3, delta_3, delta_5.
+Stages per data format: synthetic data (training, held-out); pair records of both for each number of sweeps; each
+variant trained with each seed (`tools/train.py`); each evaluated (`tools/eval.py`). --json gets per variant the
+mean, sample standard deviation, min and max over the seeds of the paper's moving / stationary error, the three-way
+EPE and the bucketed dynamic EPE, zero flow's, and whether zero flow, the paper's model and the best variant are
+apart by more than the seeds' spread. Resumable (`ff3d_tf.stages`): a rerun with the same command skips what is done.
+"""
+import argparse
+import os
+import sys
+
+# tools/ on sys.path, also when run through runpy: the tools' shared flags (_common)
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
+
+import _common  # noqa: E402  (puts the repository root on sys.path too)
+
+from ff3d_tf.stages import StageError  # noqa: E402
+from lab import paths  # noqa: E402
+from lab.training import sweeps_benchmark  # noqa: E402
+
+
+def _words(text: str) -> tuple[str, ...]:
+    return tuple(w for w in text.split(",") if w)
+
+
+def main():
+    _common.start("inference")  # before TensorFlow is imported
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out_dir", default="sweeps_out", help="data, records, models, metrics")
+    p.add_argument("--json", default=paths.benchmark_file("sweeps_synthetic.json"))
+    p.add_argument("--config", default="configs/synthetic_cpu.yaml")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override for every training and evaluation (repeatable)")
+    p.add_argument("--steps", type=int, default=300, help="training steps of each run")
+    p.add_argument("--seeds", default="0,1,2", help="comma-separated train.seed values: one run each per variant")
+    p.add_argument("--formats", default="wod", help="comma-separated, of: " + ", ".join(sweeps_benchmark.FORMATS))
+    p.add_argument("--variants", default=",".join(sweeps_benchmark.VARIANTS),
+                   help="comma-separated, of: " + ", ".join(sweeps_benchmark.VARIANTS))
+    p.add_argument("--train_segments", type=int, default=4, help="WOD segments / AV2 logs for training")
+    p.add_argument("--eval_segments", type=int, default=2, help="held-out WOD segments / AV2 logs")
+    p.add_argument("--frames_per_segment", type=int, default=8, help="WOD frames a segment / AV2 sweeps a log")
+    p.add_argument("--lidar_scale", type=float, default=0.12, help="WOD: < 1 shrinks the range images")
+    p.add_argument("--av2_points_per_sweep", type=int, default=6000)
+    args = p.parse_args()
+    formats, variants = _words(args.formats), _words(args.variants)
+    if not formats or any(f not in sweeps_benchmark.FORMATS for f in formats) or len(set(formats)) != len(formats):
+        p.error(f"--formats {args.formats!r}: distinct, of {', '.join(sweeps_benchmark.FORMATS)}")
+    if not variants or any(v not in sweeps_benchmark.VARIANTS for v in variants):
+        p.error(f"--variants {args.variants!r}: of {', '.join(sweeps_benchmark.VARIANTS)}")
+    try:
+        seeds = tuple(int(s) for s in _words(args.seeds))
+    except ValueError:
+        p.error(f"--seeds {args.seeds!r}: comma-separated integers")
+    if not seeds or len(set(seeds)) != len(seeds):
+        p.error(f"--seeds {args.seeds!r}: one or more distinct integers")
+    options = sweeps_benchmark.Options(
+        config=args.config, sets=tuple(args.set), steps=args.steps, seeds=seeds, formats=formats,
+        train_segments=args.train_segments, eval_segments=args.eval_segments,
+        frames_per_segment=args.frames_per_segment, lidar_scale=args.lidar_scale,
+        av2_points_per_sweep=args.av2_points_per_sweep, variants=variants)
+    try:
+        sweeps_benchmark.run(options, os.path.abspath(args.out_dir), os.path.abspath(args.json),
+                             " ".join(["lab/tools/benchmark_sweeps.py"] + sys.argv[1:]))
+    except StageError as e:
+        sys.exit(f"benchmark_sweeps: {e}")
+
+
+if __name__ == "__main__":
+    _common.run(main)
