@@ -694,9 +694,61 @@ def _heads_table(source_file):
 HEADS_TABLE = _heads_table(_HB)
 HEADS_SEED1_TABLE = _heads_table(_HB_SEED1)
 
+# -- several sweeps: accuracy over seeds (benchmark_sweeps.py) and cost (benchmark_sweeps_cost.py)
+_SW, _SC = "sweeps_synthetic.json", "sweeps_cost_cpu.json"
+_SW_VARIANTS = (("paper_pair", "paper model, 2 sweeps"), ("gru_deltaflow_pair", "GRU + DeltaFlow loss, 2 sweeps"),
+                ("stack_3", "GRU + DeltaFlow loss, stack of 3"), ("delta_3", "GRU + DeltaFlow loss, delta of 3"),
+                ("delta_5", "GRU + DeltaFlow loss, delta of 5"))
+_SW_COLUMNS = ("moving_mps", "stationary_mps", "three_way_mean_epe_m", "bucketed_dynamic_norm_epe")
+_SC_VARIANTS = (("pair_2", "pair, 2 sweeps"), ("stack_3", "stack, 3 sweeps"), ("delta_3", "delta, 3 sweeps"),
+                ("delta_5", "delta, 5 sweeps"))
+
+
+def _spread_cell(path):
+    return Calc("{}", lambda s: "n/a" if s["mean"] is None else f"{s['mean']:.3f} ± {s['std']:.3f}", (V(_SW, path),))
+
+
+SWEEPS_TABLE = Table(
+    B, Quote(B, "`benchmarks/sweeps_synthetic.json`: {} training steps a run, seeds {}, `{}`, {} training and {} "
+                "held-out synthetic WOD segments of {} frames (lidar scale {}); error on the held-out pairs, mean ± "
+                "sample standard deviation over the seeds, {} ({} cores):",
+             (V(_SW, "options/steps"), Calc("{}", lambda s: ", ".join(map(str, s)), (V(_SW, "options/seeds"),)),
+              V(_SW, "options/config"), V(_SW, "options/train_segments"), V(_SW, "options/eval_segments"),
+              V(_SW, "options/frames_per_segment"), V(_SW, "options/lidar_scale"), V(_SW, "cpu/model_name"),
+              V(_SW, "cpu/cpu_count"))),
+    ("data", "model", "moving (m/s)", "stationary (m/s)", "three-way mean EPE (m)", "bucketed dynamic (normalized)"),
+    "llrrrr",
+    tuple(("wod", label, *(_spread_cell(f"formats/wod/per_variant/{v}/{c}") for c in _SW_COLUMNS))
+          for v, label in _SW_VARIANTS)
+    + (("wod", "zero flow", *(_spread_cell(f"formats/wod/zero_flow/{c}") for c in _SW_COLUMNS)),))
+
+
+def _separation(which: str) -> Calc:
+    """The sentence part of one separation: "D m/s apart against a seed range of R m/s (apart | not apart)"."""
+    def text(separations):
+        (key,) = [k for k in separations if k.startswith(which)]
+        s = separations[key]
+        return (f"{s['difference']:.3f} m/s apart against a seed range of {s['largest_range']:.3f} m/s "
+                f"({'apart' if s['apart'] else 'not apart'})")
+    return Calc("{}", text, (V(_SW, "formats/wod/separations"),))
+
+
+SWEEPS_COST_TABLE = Table(
+    B, Quote(B, "`benchmarks/sweeps_cost_cpu.json`, paper config with the paper head, {} points a sweep, medians of {} "
+                "forwards and {} training steps, each variant in its own process, {} ({} cores):",
+             (V(_SC, "variants/pair_2/points_per_sweep", "{:,}"), V(_SC, "variants/pair_2/forward/n"),
+              V(_SC, "variants/pair_2/train_step/n"), V(_SC, "cpu/model_name"), V(_SC, "cpu/cpu_count"))),
+    ("sweeps", "parameters", "forward", "over the pair's", "training step", "over the pair's", "peak RSS",
+     "portable XLA forward"), "lrrrrrrr",
+    tuple((label, V(_SC, f"variants/{v}/params", "{:,}"), _ms(_SC, f"variants/{v}/forward/median_ms"),
+           V(_SC, f"ratios_to_pair/{v}/forward", "{:.2f}x"), _ms(_SC, f"variants/{v}/train_step/median_ms"),
+           V(_SC, f"ratios_to_pair/{v}/train_step", "{:.2f}x"), V(_SC, f"variants/{v}/peak_rss_gb", "{:.2f} GB"),
+           Calc("{:.1f} MB", lambda sizes: sum(sizes.values()) / 1e6, (V(_SC, f"variants/{v}/xla_forward_bytes"),)))
+          for v, label in _SC_VARIANTS))
+
 TABLES = (LATENCY_TABLE, BF16_TABLE, MEMORY_TABLE, ONNX_TABLE, GPU_FORWARD_TABLE, GPU_TRAIN_TABLE, INPUT_TABLE,
           AV2_INPUT_TABLE, TRAINING_INPUT_TABLE, SIZING_TABLE, NSFP_SPEED_TABLE, NSFP_QUALITY_TABLE, DISTILLATION_TABLE,
-          SOAK_TABLE, ONEDNN_TABLE, HEADS_TABLE, HEADS_SEED1_TABLE)
+          SOAK_TABLE, ONEDNN_TABLE, HEADS_TABLE, HEADS_SEED1_TABLE, SWEEPS_TABLE, SWEEPS_COST_TABLE)
 
 _1M = "latency_cpu_1m.json"
 _AMD_DIFF = "summary/flow_difference_bfloat16_vs_float32_mps"
@@ -716,6 +768,17 @@ def _gpu_ref(precision, fmt):
 _SUB = "av2_submission.json"
 
 QUOTES = (
+    Quote(B, "Zero flow and the paper's model are {}; the best on moving points, `{}`, and the paper's model are {}.",
+          (_separation("zero_flow_vs_paper_pair"), V(_SW, "formats/wod/best_on_moving"), _separation("paper_pair_vs"))),
+    Quote(B, "`delta` on 5 sweeps costs {} the pair's forward (the target: at most {}x)",
+          (V(_SC, "delta_5_forward_bar/measured", "{:.2f}x"), V(_SC, "delta_5_forward_bar/target_at_most"))),
+    Quote("docs/training.md", "{} for the pair, {} for `stack` of 3 and {} for `delta`, whatever the number of sweeps",
+          (V(_SC, "variants/pair_2/params", "{:,}"), V(_SC, "variants/stack_3/params", "{:,}"),
+           V(_SC, "variants/delta_5/params", "{:,}"))),
+    Quote("docs/datasets.md", "on the benchmark's synthetic WOD data a record of 3 sweeps is {} the size of a pair's, "
+                              "one of 5 sweeps {}: `benchmarks/sweeps_synthetic.json`",
+          (ratio("{:.2f}x", V(_SW, "training_records_bytes/wod/3"), V(_SW, "training_records_bytes/wod/2")),
+           ratio("{:.2f}x", V(_SW, "training_records_bytes/wod/5"), V(_SW, "training_records_bytes/wod/2")))),
     Quote("docs/datasets.md", "On the sample log's first sweep ({} points, `benchmarks/av2_submission.json`), "
                               "av2-api's rule keeps {} points with Argoverse's own ground labels and {} with the "
                               "records' ground ({} point is ground in one and not the other), and the protocol's 35 m "

@@ -175,6 +175,16 @@ def read_format(options: Options, out_dir: str, fmt: str) -> dict:
     return format_summary(per_seed, zero)
 
 
+def records_bytes(out_dir: str, options: Options) -> dict:
+    """{format: {sweeps: bytes of the training records of that many sweeps}}: every number of sweeps has the same
+    examples (a log's first sweeps included, their history clamped), so the ratios are those of one record."""
+    def size(directory):
+        return sum(os.path.getsize(os.path.join(directory, f)) for f in os.listdir(directory)
+                   if f.endswith(".tfrecord"))
+    return {fmt: {str(n): size(f"{out_dir}/{fmt}/records_{n}/train") for n in options.sweeps()}
+            for fmt in options.formats}
+
+
 def table(result: dict) -> list[str]:
     """The result as Markdown rows, as docs/benchmarks.md shows it (tests/test_docs.py checks it): per format, each
     variant and zero flow, each of `TABLE_COLUMNS` as mean ± sample standard deviation over the seeds."""
@@ -205,6 +215,7 @@ def run(options: Options, out_dir: str, json_path: str, command: str, tools_dir:
                 "sample standard deviation, min and max over the seeds; m/s for *_mps, m for *_epe_m)",
         "command": command,
         "formats": {fmt: read_format(options, out_dir, fmt) for fmt in options.formats},
+        "training_records_bytes": records_bytes(out_dir, options),
         "options": options.as_json(),
         "stage_commands": [" ".join([os.path.relpath(s.command[0], ROOT), *s.command[1:]]) for s in plan],
         "timings_s": {**stages.seconds, "total_this_run": time.time() - t0},

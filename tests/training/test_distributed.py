@@ -113,6 +113,31 @@ def test_three_steps_with_resume_equal_the_reference(tiny_segment, tiny_config, 
     _assert_same(resumed, ref)
 
 
+@pytest.mark.slow  # three compiled training steps of two replicas: minutes on 2 cores (CI's test-distributed runs it)
+def test_two_replicas_of_a_three_sweep_model_equal_the_reference_and_resume(tiny_segment, tiny_config, tmp_path):
+    """`model.temporal=delta` on 3 sweeps with the GRU head: a step on two replicas is the reference's; a trainer
+    restored from its checkpoint holds its state exactly and takes the same next step as the trainer that wrote it."""
+    cfg = replace_config(replica_config(tiny_config), {"data.num_frames": 3, "model.temporal": "delta",
+                                                       "model.head": "gru", "model.gru_iterations": 1})
+    two = batches(tiny_segment, cfg, 2)
+    assert "points_xyz_tm2_in_t0" in two[0]
+    model_dir = str(tmp_path / "m")
+    first = Trainer(cfg, model_dir, [tiny_segment], strategy=_two_replicas(), log_fn=lambda s: None)
+    ref = Reference(cfg, first.model.get_weights())
+    np.testing.assert_allclose(float(first.step(_distributed(first.strategy, two[0]))), ref.step(two[0]), rtol=1e-5)
+    _assert_same(first, ref)
+    first.manager.save(checkpoint_number=1)
+    resumed = Trainer(cfg, model_dir, [tiny_segment], strategy=_two_replicas(), log_fn=lambda s: None)
+    resumed.restore_latest()
+    for a, b in zip(resumed.model.variables + resumed.optimizer.variables,
+                    first.model.variables + first.optimizer.variables):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=a.path)
+    for trainer in (first, resumed):
+        trainer.step(_distributed(trainer.strategy, two[1]))
+    for a, b in zip(resumed.model.variables, first.model.variables):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7, err_msg=a.path)
+
+
 @pytest.mark.parametrize("replicas", [1, 2])
 def test_train_loop_under_strategy_learns(tiny_segment, tiny_config, tmp_path, replicas):
     """The whole loop (distributed dataset, sharding, checkpoints) runs under 1 and 2 replicas."""
