@@ -28,6 +28,7 @@ from typing import Callable, Sequence
 import numpy as np
 import tensorflow as tf
 
+from ff3d_tf import cpu
 from ff3d_tf.config import ExperimentConfig, replace_config
 from ff3d_tf.model import build_model
 from ff3d_tf.model import compile as compile_lib
@@ -209,7 +210,7 @@ def run(cfg: ExperimentConfig, modes: Sequence[str], precisions: dict, points: S
     framework_baseline_gb = bench.proc_status("VmRSS")  # TensorFlow imported, model variables created
     forwards = {name: tf.function(lambda x, model=model: model(x, training=False), reduce_retracing=True)
                 for name, model in models.items()}
-    results = {"device": compile_lib.accelerator_type(), "cpu_count": os.cpu_count(),
+    results = {"device": compile_lib.accelerator_type(), "cpu_count": os.cpu_count(), "cpu": cpu.describe(),
                "load_average_at_start": bench.load_average(), "grid": [cfg.grid.num_pillars_x, cfg.grid.num_pillars_y],
                "modes": {name: v.record() for name, v in timed_variants.items()}, "precisions": dict(precisions),
                "cpu_bf16_support": list(compile_lib.cpu_bf16_support()), "params": first.count_params(),

@@ -19,7 +19,7 @@ from typing import Callable, Sequence
 import numpy as np
 import tensorflow as tf
 
-from ff3d_tf import geometry
+from ff3d_tf import cpu, geometry
 from ff3d_tf.checkpoints import restore_model
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.inference import onnx_export
@@ -137,7 +137,7 @@ def run(cfg: ExperimentConfig, checkpoint: str | None, points: int, runs: int, t
             log(f"exported {variant} in {export_s:.1f} s")
         readings = bench.round_robin(calls, runs, warmup=WARMUP_ROUNDS)
     latency = latency_summary(readings)
-    return {"device": compile_lib.accelerator_type(), "cpu_count": os.cpu_count(),
+    return {"device": compile_lib.accelerator_type(), "cpu_count": os.cpu_count(), "cpu": cpu.describe(),
             "load_average_at_start": load_average_at_start, "grid": [cfg.grid.num_pillars_x, cfg.grid.num_pillars_y],
             "points": points, "runs": runs, "onnxruntime_intra_op_threads": threads,
             "tensorflow_compile_mode": compile_lib.resolve_compile_mode(cfg.model.compile),

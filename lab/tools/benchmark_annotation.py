@@ -22,6 +22,7 @@ from lab import bench  # noqa: E402
 
 def main():
     _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf import cpu
     from ff3d_tf.data.synthetic import wod as synthetic
     from ff3d_tf.data.wod import waymo
     from ff3d_tf.labels import pipeline as annotate_segments
@@ -41,7 +42,8 @@ def main():
             synthetic.write_segment(segment + ".partial", synthetic.SegmentSpec(seed=500, num_frames=args.frames,
                                                                                 name="bench"))
             os.replace(segment + ".partial", segment)
-    result = {"segment": segment, "cpu_count": os.cpu_count(), "malloc_tuned": annotate_segments.keep_freed_memory()}
+    result = {"segment": segment, "cpu_count": os.cpu_count(), "cpu": cpu.describe(),
+              "malloc_tuned": annotate_segments.keep_freed_memory()}
     for run in ("cold", "warm"):
         out_path = os.path.join(args.work_dir, f"annotated-{run}.tfrecord")
         if os.path.exists(out_path):

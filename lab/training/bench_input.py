@@ -33,6 +33,7 @@ from typing import Callable, Sequence
 
 import tensorflow as tf
 
+from ff3d_tf import cpu
 from ff3d_tf.config import ExperimentConfig, load_config, replace_config
 from ff3d_tf.data import pair_records, pairs
 from ff3d_tf.data.av2 import argoverse2
@@ -61,7 +62,7 @@ def check_core_counts(cores: Sequence[int]) -> None:
 def header(config: str | None, overrides: Sequence[str], cfg: ExperimentConfig) -> dict:
     """The fields every result starts with: the config file and overrides as given, the batch size, the CPUs."""
     return {"config": config, "overrides": list(overrides), "batch_size": cfg.train.global_batch_size,
-            "cpus_available": len(os.sched_getaffinity(0))}
+            "cpus_available": len(os.sched_getaffinity(0)), "cpu": cpu.describe()}
 
 
 def child_config(config: str | None) -> str | None:
