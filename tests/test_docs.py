@@ -734,16 +734,16 @@ def _separation(which: str) -> Calc:
 
 
 SWEEPS_COST_TABLE = Table(
-    B, Quote(B, "`benchmarks/sweeps_cost_cpu.json`, paper config with the paper head, {} points a sweep, medians of {} "
-                "forwards and {} training steps, each variant in its own process, {} ({} cores):",
-             (V(_SC, "variants/pair_2/points_per_sweep", "{:,}"), V(_SC, "variants/pair_2/forward/n"),
-              V(_SC, "variants/pair_2/train_step/n"), V(_SC, "cpu/model_name"), V(_SC, "cpu/cpu_count"))),
+    B, Quote(B, "`benchmarks/sweeps_cost_cpu.json` (`{}`), paper config with the paper head, {} points a sweep, "
+                "medians, each variant in its own process, {} ({} cores):",
+             (V(_SC, "command"), V(_SC, "variants/pair_2/points_per_sweep", "{:,}"), V(_SC, "cpu/model_name"),
+              V(_SC, "cpu/cpu_count"))),
     ("sweeps", "parameters", "forward", "over the pair's", "training step", "over the pair's", "peak RSS",
      "portable XLA forward"), "lrrrrrrr",
     tuple((label, V(_SC, f"variants/{v}/params", "{:,}"), _ms(_SC, f"variants/{v}/forward/median_ms"),
            V(_SC, f"ratios_to_pair/{v}/forward", "{:.2f}x"), _ms(_SC, f"variants/{v}/train_step/median_ms"),
            V(_SC, f"ratios_to_pair/{v}/train_step", "{:.2f}x"), V(_SC, f"variants/{v}/peak_rss_gb", "{:.2f} GB"),
-           Calc("{:.1f} MB", lambda sizes: sum(sizes.values()) / 1e6, (V(_SC, f"variants/{v}/xla_forward_bytes"),)))
+           Calc("{:,.0f} kB", lambda sizes: sum(sizes.values()) / 1e3, (V(_SC, f"variants/{v}/xla_forward_bytes"),)))
           for v, label in _SC_VARIANTS))
 
 TABLES = (LATENCY_TABLE, BF16_TABLE, MEMORY_TABLE, ONNX_TABLE, GPU_FORWARD_TABLE, GPU_TRAIN_TABLE, INPUT_TABLE,
@@ -775,10 +775,6 @@ QUOTES = (
     Quote("docs/training.md", "{} for the pair, {} for `stack` of 3 and {} for `delta`, whatever the number of sweeps",
           (V(_SC, "variants/pair_2/params", "{:,}"), V(_SC, "variants/stack_3/params", "{:,}"),
            V(_SC, "variants/delta_5/params", "{:,}"))),
-    Quote("docs/datasets.md", "on the benchmark's synthetic WOD data a record of 3 sweeps is {} the size of a pair's, "
-                              "one of 5 sweeps {}: `benchmarks/sweeps_synthetic.json`",
-          (ratio("{:.2f}x", V(_SW, "training_records_bytes/wod/3"), V(_SW, "training_records_bytes/wod/2")),
-           ratio("{:.2f}x", V(_SW, "training_records_bytes/wod/5"), V(_SW, "training_records_bytes/wod/2")))),
     Quote("docs/datasets.md", "On the sample log's first sweep ({} points, `benchmarks/av2_submission.json`), "
                               "av2-api's rule keeps {} points with Argoverse's own ground labels and {} with the "
                               "records' ground ({} point is ground in one and not the other), and the protocol's 35 m "
