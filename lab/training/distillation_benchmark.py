@@ -105,6 +105,15 @@ class Stage:
     outputs: list[str]  # the files and folders it writes
 
 
+def run_stages(plan: list[Stage], out_dir: str, log: Callable[[str], None]) -> Stages:
+    """Runs (or resumes, `ff3d_tf.stages`) each stage of `plan` in order, recorded under `out_dir`/stages; returns the
+    runner (its `seconds` and `skipped`). A stage that fails raises `ff3d_tf.stages.StageError`."""
+    stages = Stages(f"{out_dir}/stages", [s.name for s in plan], cwd=ROOT, log=log)
+    for stage in plan:
+        stages.run(stage.name, stage.command, stage.outputs)
+    return stages
+
+
 def stage_plan(options: Options, out_dir: str, tools_dir: str = TOOLS_DIR) -> list[Stage]:
     """The stages of the module docstring, in `PLAN`'s order, writing under `out_dir`."""
     data, records = f"{out_dir}/data", f"{out_dir}/records"
@@ -277,9 +286,7 @@ def run(options: Options, out_dir: str, json_path: str, command: str, tools_dir:
     """Runs (or resumes) the stages under `out_dir`, scores the pseudo-labels, writes the result to `json_path`, logs
     its `table` and returns it. A stage that fails raises `ff3d_tf.stages.StageError`."""
     t0 = time.time()
-    stages = Stages(f"{out_dir}/stages", PLAN, cwd=ROOT, log=log)
-    for stage in stage_plan(options, out_dir, tools_dir):
-        stages.run(stage.name, stage.command, stage.outputs)
+    stages = run_stages(stage_plan(options, out_dir, tools_dir), out_dir, log)
     from ff3d_tf.config import load_config  # TensorFlow, in this process, once the stages have run
     from ff3d_tf.data.pairs import list_segment_files
     log("\n=== scoring the pseudo-labels against the human labels of the training records")

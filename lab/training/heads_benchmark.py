@@ -27,9 +27,8 @@ import time
 from typing import Callable
 
 from ff3d_tf import cpu
-from ff3d_tf.stages import Stages
 from lab.paths import ROOT, TOOLS_DIR
-from lab.training.distillation_benchmark import CLASSES, SUMMARY_KEYS, Stage, print_line, write_json
+from lab.training.distillation_benchmark import CLASSES, SUMMARY_KEYS, Stage, print_line, run_stages, write_json
 
 FORMATS = ("wod", "av2")  # make_synthetic_data.py --format / write_pair_records.py --source
 # {variant: its config overrides}; every variant also gets the benchmark's common overrides (Options.config_sets).
@@ -96,6 +95,24 @@ class Options:
                 "set": self.config_sets(), "variants": {k: list(v) for k, v in VARIANTS.items()}}
 
 
+def generate_stages(options, fmt: str, data: str, tools_dir: str = TOOLS_DIR) -> list[Stage]:
+    """The synthetic data of both splits (`SPLIT_SEEDS`) in format `fmt` under `data`/<split>, sized by `options`
+    (its train_segments, eval_segments, frames_per_segment, lidar_scale and av2_points_per_sweep)."""
+    counts = {"train": options.train_segments, "eval": options.eval_segments}
+    stages = []
+    for split, seed in SPLIT_SEEDS.items():
+        if fmt == "wod":
+            size = ["--num_segments", str(counts[split]), "--frames_per_segment", str(options.frames_per_segment),
+                    "--lidar_scale", str(options.lidar_scale)]
+        else:  # AV2 sensor logs under data/<split>/<split>/<log_id>/
+            size = ["--format", "av2", "--split", split, "--num_logs", str(counts[split]), "--sweeps_per_log",
+                    str(options.frames_per_segment), "--points_per_sweep", str(options.av2_points_per_sweep)]
+        stages.append(Stage(f"generate_{fmt}_{split}", [os.path.join(tools_dir, "make_synthetic_data.py"),
+                                                        "--out_dir", f"{data}/{split}", "--seed", str(seed), *size],
+                            [f"{data}/{split}"]))
+    return stages
+
+
 def stage_plan(options: Options, out_dir: str, tools_dir: str = TOOLS_DIR) -> list[Stage]:
     """The stages of the module docstring, in `plan_names(options.formats)`'s order, writing under `out_dir`."""
     config = ["--config", options.config] + [a for s in options.config_sets() for a in ("--set", s)]
@@ -105,18 +122,8 @@ def stage_plan(options: Options, out_dir: str, tools_dir: str = TOOLS_DIR) -> li
 
     plan = []
     for fmt in options.formats:
-        data, records, counts = f"{out_dir}/{fmt}/data", f"{out_dir}/{fmt}/records", {
-            "train": options.train_segments, "eval": options.eval_segments}
-        for split, seed in SPLIT_SEEDS.items():
-            if fmt == "wod":
-                size = ["--num_segments", str(counts[split]), "--frames_per_segment", str(options.frames_per_segment),
-                        "--lidar_scale", str(options.lidar_scale)]
-            else:  # AV2 sensor logs under data/<split>/<split>/<log_id>/
-                size = ["--format", "av2", "--split", split, "--num_logs", str(counts[split]), "--sweeps_per_log",
-                        str(options.frames_per_segment), "--points_per_sweep", str(options.av2_points_per_sweep)]
-            plan.append(Stage(f"generate_{fmt}_{split}", [tool("make_synthetic_data.py"), "--out_dir",
-                                                          f"{data}/{split}", "--seed", str(seed), *size],
-                              [f"{data}/{split}"]))
+        data, records = f"{out_dir}/{fmt}/data", f"{out_dir}/{fmt}/records"
+        plan += generate_stages(options, fmt, data, tools_dir)
         plan += [Stage(f"records_{fmt}_{split}",
                        [tool("write_pair_records.py"), "--source", fmt, "--config", options.config, "--input",
                         f"{data}/{split}" + (f"/{split}" if fmt == "av2" else ""), "--out_dir", f"{records}/{split}"],
@@ -270,9 +277,7 @@ def run(options: Options, out_dir: str, json_path: str, command: str, tools_dir:
     it. A stage that fails raises `ff3d_tf.stages.StageError`."""
     t0 = time.time()
     plan = stage_plan(options, out_dir, tools_dir)
-    stages = Stages(f"{out_dir}/stages", [s.name for s in plan], cwd=ROOT, log=log)
-    for stage in plan:
-        stages.run(stage.name, stage.command, stage.outputs)
+    stages = run_stages(plan, out_dir, log)
     from ff3d_tf.config import load_config  # TensorFlow, in this process, once the stages have run
     from ff3d_tf.data.pairs import list_segment_files
     log("\n=== counting the pillars shared by moving and stationary points in the training records")

@@ -23,10 +23,9 @@ import time
 from typing import Callable
 
 from ff3d_tf import cpu
-from ff3d_tf.stages import Stages
 from lab.paths import ROOT, TOOLS_DIR
-from lab.training.distillation_benchmark import Stage, print_line, write_json
-from lab.training.heads_benchmark import FORMATS, HEADLINE_KEYS, SPLIT_SEEDS, eval_metrics, headline
+from lab.training.distillation_benchmark import Stage, print_line, run_stages, write_json
+from lab.training.heads_benchmark import FORMATS, HEADLINE_KEYS, SPLIT_SEEDS, eval_metrics, generate_stages, headline
 
 GRU_DELTAFLOW = ("model.head=gru", "train.loss=deltaflow")
 # {variant: (sweeps, its config overrides)}: the issue's five rows.
@@ -92,17 +91,8 @@ def stage_plan(options: Options, out_dir: str, tools_dir: str = TOOLS_DIR) -> li
 
     plan = []
     for fmt in options.formats:
-        data, counts = f"{out_dir}/{fmt}/data", {"train": options.train_segments, "eval": options.eval_segments}
-        for split, seed in SPLIT_SEEDS.items():
-            if fmt == "wod":
-                size = ["--num_segments", str(counts[split]), "--frames_per_segment", str(options.frames_per_segment),
-                        "--lidar_scale", str(options.lidar_scale)]
-            else:
-                size = ["--format", "av2", "--split", split, "--num_logs", str(counts[split]), "--sweeps_per_log",
-                        str(options.frames_per_segment), "--points_per_sweep", str(options.av2_points_per_sweep)]
-            plan.append(Stage(f"generate_{fmt}_{split}", [tool("make_synthetic_data.py"), "--out_dir",
-                                                          f"{data}/{split}", "--seed", str(seed), *size],
-                              [f"{data}/{split}"]))
+        data = f"{out_dir}/{fmt}/data"
+        plan += generate_stages(options, fmt, data, tools_dir)
         for sweeps in options.sweeps():
             temporal = [] if sweeps == 2 else ["model.temporal=delta"]  # records hold sweeps, whatever the model
             plan += [Stage(f"records_{fmt}_{split}_{sweeps}",
@@ -206,9 +196,7 @@ def run(options: Options, out_dir: str, json_path: str, command: str, tools_dir:
     it. A stage that fails raises `ff3d_tf.stages.StageError`."""
     t0 = time.time()
     plan = stage_plan(options, out_dir, tools_dir)
-    stages = Stages(f"{out_dir}/stages", [s.name for s in plan], cwd=ROOT, log=log)
-    for stage in plan:
-        stages.run(stage.name, stage.command, stage.outputs)
+    stages = run_stages(plan, out_dir, log)
     result = {
         "what": "models of 2, 3 and 5 sweeps (model.temporal pair, stack, delta) trained with several seeds on the "
                 "same synthetic records, scored on held-out synthetic records beside zero flow (tools/eval.py; mean, "
