@@ -120,11 +120,10 @@ def _apply_studies(ex: dict, cfg: ExperimentConfig, seed) -> dict:
         else:  # "Ignored": no target label
             ex["class_id_t0"] = tf.where(ablated, schema.CLASS_NO_LABEL, cls)
     # Every cloud of the example (t0, t-1, older sweeps), with its own seed offset for the density study.
-    xyz_keys = {_cloud_of(k): k for k in ex if k.startswith("points_xyz_")}
+    clouds = [c for c in schema.sweep_clouds(schema.MAX_NUM_FRAMES) if schema.cloud_keys(c)["xyz"] in ex]
     keep = {}
-    for offset, (cloud, key) in enumerate(sorted(xyz_keys.items(), key=lambda c: schema.sweep_clouds(
-            schema.MAX_NUM_FRAMES).index(c[0]))):
-        p = ex[key]
+    for offset, cloud in enumerate(clouds):
+        p = ex[schema.cloud_keys(cloud)["xyz"]]
         keep[cloud] = tf.ones(tf.shape(p)[:1], tf.bool)
         if d.crop_to_grid:
             keep[cloud] &= ((p[:, 0] >= g.x_range_m[0]) & (p[:, 0] < g.x_range_m[1]) & (p[:, 1] >= g.y_range_m[0]) &
@@ -178,8 +177,10 @@ def consecutive_frames(frames: tf.data.Dataset, num_frames: int = 2) -> tf.data.
     def step(state, frame_t0):
         previous, count = state  # the frames before this one, newest first; how many frames came before it
         window = (frame_t0,) + previous
-        carried = tf.nest.map_structure(lambda first, later: tf.cond(count > 0, lambda: later, lambda: first),
-                                        (frame_t0,) * (num_frames - 1), window[:-1])
+        carried = window[:-1]  # the pair carries the frame alone; longer windows start as the first frame repeated
+        if num_frames > 2:
+            carried = tf.nest.map_structure(lambda first, later: tf.cond(count > 0, lambda: later, lambda: first),
+                                            (frame_t0,) * (num_frames - 1), carried)
         return (carried, count + 1), (window, tf.minimum(count, num_frames - 1))
 
     windows = frames.scan(((none,) * (num_frames - 1), tf.constant(0, tf.int64)), step)
