@@ -30,7 +30,7 @@ import keras
 import tensorflow as tf
 
 from ff3d_tf import schema
-from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.config import TEMPORALS, ExperimentConfig
 from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.model import gru_head
 from ff3d_tf.model import layers as L
@@ -64,6 +64,8 @@ class FastFlow3D(keras.Model):
     `head`: "paper" (rows W-Z: `head_y`, `head_z`) or "gru" (`head_gru`: DeFlow's GRU point decoder, its hidden state
     the point's pillar embedding of both clouds and the decoder's output there, 3C wide; its input the offset from the
     pillar centre encoded to C values; `gru_iterations` steps; an MLP of `head_hidden_dim` hidden units to the flow).
+    `num_frames`, `temporal`, `temporal_decay`: the sweeps read and how they meet in the U-Net (module docstring,
+    `model.temporal` in `ff3d_tf.config`).
     """
 
     # Keyword-only, the paper's values without defaults: they live in `ff3d_tf.config` alone (`model_kwargs`).
@@ -87,7 +89,7 @@ class FastFlow3D(keras.Model):
             raise ValueError(f"head={head!r}: paper or gru")
         self.head, self.gru_iterations = head, int(gru_iterations)
         self.num_frames, self.temporal, self.temporal_decay = int(num_frames), temporal, float(temporal_decay)
-        if temporal not in ("pair", "stack", "delta") or not 2 <= self.num_frames <= schema.MAX_NUM_FRAMES or \
+        if temporal not in TEMPORALS or not 2 <= self.num_frames <= schema.MAX_NUM_FRAMES or \
                 (temporal == "pair" and self.num_frames != 2):
             raise ValueError(f"temporal={temporal!r} with num_frames={num_frames}: pair reads 2 sweeps, stack and "
                              f"delta 2 to {schema.MAX_NUM_FRAMES}")
