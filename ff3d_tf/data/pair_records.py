@@ -56,12 +56,10 @@ class RecordField(NamedTuple):
     count_key: str  # the point count that gives the first axis
 
 
-_T0, _TM1 = "num_points_t0", "num_points_tm1"
 # The layout of every per-point key (`schema.POINT_KEYS`; the optional ones are present in a file when its manifest
 # lists them).
 RECORD_FIELDS = {key: RecordField(spec.stored, spec.stored_compact or spec.stored, spec.dtype, spec.tail_shape,
-                                  f"num_points_{spec.cloud}") for key, spec in schema.POINT_KEYS.items()}
-POSE_KEYS = ("pose_t0", "pose_tm1")  # float64 [4, 4] each
+                                  schema.cloud_keys(spec.cloud)["count"]) for key, spec in schema.POINT_KEYS.items()}
 REQUIRED_POINT_KEYS = schema.PAIR_T0_POINT_KEYS + schema.PAIR_TM1_POINT_KEYS
 
 
