@@ -84,5 +84,8 @@ def main():
 if __name__ == "__main__":
     try:
         _common.run(main)
-    except (av2_submission.SubmissionFormatError, ValueError) as e:
+    except Exception as e:  # noqa: BLE001  (the error class is imported once TensorFlow may be)
+        from ff3d_tf.data.av2.av2_submission import SubmissionFormatError
+        if not isinstance(e, (SubmissionFormatError, ValueError)):
+            raise
         sys.exit(f"error: {e}")

@@ -58,6 +58,16 @@ def sample_masks(tmp_path_factory):
     return str(folder / "val-masks.zip"), str(folder / "val_submission_format.json"), mask, labels
 
 
+def test_a_test_split_without_masks_ends_with_the_message(sample_records, tmp_path):
+    """The tool's own error, not a traceback: the error classes it catches are imported only after the failure
+    (TensorFlow must not be imported before `start`)."""
+    out = subprocess.run([sys.executable, "tools/av2_submission.py", "--ground_truth", "--leaderboard", "v2",
+                          "--split", "test", "--data_dir", str(sample_records), "--out", str(tmp_path / "x.zip"),
+                          *_tiny()], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr[-3000:]
+    assert out.stderr.strip().splitlines()[-1].startswith("error: a test submission needs the official masks")
+
+
 def test_v1_submissions_of_the_sample_log(sample_records, sample_masks, tmp_path):
     masks, format_json, mask, labels = sample_masks
     stamps = argoverse2.sweep_timestamps(AV2_LOG)
