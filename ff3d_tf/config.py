@@ -90,7 +90,7 @@ class DataConfig:
     labels: str = "human"
     laser_names: tuple[int, ...] = schema.ALL_LASERS  # TOP, FRONT, SIDE_LEFT, SIDE_RIGHT, REAR
     returns: tuple[int, ...] = (1,)  # 1 = first return, 2 = second return
-    max_frame_gap_s: float = 0.15  # pairs further apart are skipped (WOD frames are ~0.1 s apart)
+    max_frame_gap_s: float = 0.15  # a sweep further after the one before is missing: an error (or skipped)
     # Sweeps per example: the current one and num_frames - 1 past ones, each moved into the current vehicle frame
     # (2: the paper's pair; more for model.temporal stack or delta; at most schema.MAX_NUM_FRAMES).
     num_frames: int = 2

@@ -43,6 +43,13 @@ TIMESTAMP_KEY, PARTNER_TIMESTAMP_KEY, SEQUENCE_KEY = "timestamp_ns_t0", "timesta
 METADATA_KEYS = (TIMESTAMP_KEY, PARTNER_TIMESTAMP_KEY, SEQUENCE_KEY)
 
 
+def missing_sweep(time_ns: int, before_ns: int, before: str, max_gap_s: float) -> str:
+    """Why the sweep at `time_ns` cannot follow the one at `before_ns` (named `before`) in any example."""
+    return (f"the sweep at {time_ns} ns comes {(time_ns - before_ns) * 1e-9:.3f} s after {before}, more than "
+            f"data.max_frame_gap_s = {max_gap_s} s: a sweep is missing (data.skip_bad_records=true skips the examples "
+            "across the gap)")
+
+
 def pair_gap_s(example: dict) -> float:
     """The time between a record's two clouds (s, > 0 whichever `Manifest.partner`)."""
     return abs(int(example[PARTNER_TIMESTAMP_KEY]) - int(example[TIMESTAMP_KEY])) * 1e-9

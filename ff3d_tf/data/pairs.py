@@ -1,8 +1,9 @@
 """Frame pairs (t-1, t0), or sequences of `data.num_frames` sweeps, -> model input examples, in a `tf.data` pipeline
 with no Python per frame.
 
-Per segment file: records are decoded in graph (parallel), consecutive frames are paired by timestamp (gap at most
-`max_frame_gap_s`; others are skipped), the t-1 cloud is moved into the vehicle frame at t0 with
+Per segment file: records are decoded in graph (parallel), consecutive frames are paired (each at most
+`max_frame_gap_s` after the one before it, or the file fails naming the record; `skip_bad_records`: the examples
+across the gap are skipped), the t-1 cloud is moved into the vehicle frame at t0 with
 T = inv(pose_t0) @ pose_tm1 (paper appendix), and the study options (class ablation, density, ground removal) apply.
 With `data.num_frames` = N > 2, each example is the current frame and the N - 1 frames before it in the file, each
 consecutive two within `max_frame_gap_s`, every past cloud moved into the vehicle frame at t0 by its own pose; a frame
@@ -23,9 +24,10 @@ from ff3d_tf.config import ABLATED_CLASSES, ExperimentConfig
 from ff3d_tf.data import pair_records
 from ff3d_tf.data.wod import waymo
 from ff3d_tf.data.wod.wod_decode import DecodeOptions
-from ff3d_tf.data.wod_errors import parse_tagged_error
+from ff3d_tf.data.wod_errors import SOURCE_SEPARATOR, check, parse_tagged_error
 
 # Bucket sizes are base * {1, 1.5, 2, 3, 4, 6, 8, 12, ...}: at most 50% padding, ~2 buckets per doubling.
+_RECORD_INDEX = "record_index"  # a frame's index in its file, beside the decoded frame in the windows
 _BUCKET_MULTIPLIERS = np.array(sorted({m * 2 ** k for k in range(0, 14) for m in (1.0, 1.5)}))
 
 
@@ -156,11 +158,10 @@ def input_errors_named(files: list[str], options: DecodeOptions | None = None):
 
 
 def _frames_dataset(path: str, cfg: ExperimentConfig, inference_only: bool, skip_bad_records: bool):
-    def frame_only(index, frame):
-        del index
-        return frame
+    def with_index(index, frame):  # the record index names a frame out of time order
+        return {**frame, _RECORD_INDEX: index}
 
-    return waymo.frames_dataset(path, decode_options(cfg, inference_only), skip_bad_records).map(frame_only)
+    return waymo.frames_dataset(path, decode_options(cfg, inference_only), skip_bad_records).map(with_index)
 
 
 def consecutive_frames(frames: tf.data.Dataset, num_frames: int = 2) -> tf.data.Dataset:
@@ -202,13 +203,30 @@ def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_r
             ex[pair_records.SEQUENCE_KEY] = tf.strings.split(path, "/")[-1]
         return ex
 
-    def close_in_time(window, real):  # every two consecutive real sweeps in order and within the gap
-        gaps_us = tf.stack([newer["timestamp_micros"] - older["timestamp_micros"]
-                            for newer, older in zip(window[:-1], window[1:])])
-        checked = tf.range(len(window) - 1, dtype=real.dtype) < real
-        return tf.reduce_all(((gaps_us > 0) & (gaps_us <= max_gap_us)) | ~checked)
+    def in_time(newer, older):
+        gap_us = newer["timestamp_micros"] - older["timestamp_micros"]
+        return (gap_us > 0) & (gap_us <= max_gap_us)
 
-    windows = consecutive_frames(frames, cfg.data.num_frames).filter(close_in_time)
+    def close_in_time(window, real):  # every two consecutive real sweeps in order and within the gap
+        held = tf.stack([in_time(newer, older) for newer, older in zip(window[:-1], window[1:])])
+        return tf.reduce_all(held | (tf.range(len(window) - 1, dtype=real.dtype) >= real))
+
+    def checked_in_time(window, real):
+        # Every two consecutive frames of the file are (t0, t-1) of one window, the first that holds them: checking
+        # that pair alone names the first frame out of order or after a missing one.
+        frame_t0, frame_tm1 = window[0], window[1]
+        reason = tf.strings.format(
+            "the frame at timestamp_micros {} comes {} us after the one before it (record {}); frames are in time "
+            "order and at most data.max_frame_gap_s apart, so a frame is missing or out of order",
+            (frame_t0["timestamp_micros"], frame_t0["timestamp_micros"] - frame_tm1["timestamp_micros"],
+             frame_tm1[_RECORD_INDEX]))
+        source = tf.strings.join([path, SOURCE_SEPARATOR, tf.strings.as_string(frame_t0[_RECORD_INDEX])])
+        with tf.control_dependencies([check(in_time(frame_t0, frame_tm1), "timestamp_micros", reason, source)]):
+            return tf.nest.map_structure(tf.identity, (window, real))
+
+    windows = consecutive_frames(frames, cfg.data.num_frames)
+    # With skip_bad_records an example across a missing or reordered frame is dropped; without it the file fails.
+    windows = windows.filter(close_in_time) if skip_bad_records else windows.map(checked_in_time)
     return windows.map(to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 

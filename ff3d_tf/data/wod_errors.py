@@ -71,11 +71,11 @@ class TaggedError(NamedTuple):
             self.reason if reason is None else reason)
 
 
-def check(cond, field: str, reason: str, source, kind: str = KIND_ERROR) -> tf.Operation:
+def check(cond, field: str, reason, source, kind: str = KIND_ERROR) -> tf.Operation:
     """An assertion whose message is the tag of (field, kind, reason, source) (no `|` in field, kind or reason; the
-    source, a scalar string tensor, may hold anything)."""
-    assert "|" not in field + kind + reason, (field, kind, reason)
-    message = tf.strings.join([f"{TAG_OPEN}{field}|{kind}|{reason}|", source, TAG_CLOSE])
+    reason may be a scalar string tensor, e.g. one naming a timestamp; the source, one too, may hold anything)."""
+    assert "|" not in field + kind + (reason if isinstance(reason, str) else ""), (field, kind, reason)
+    message = tf.strings.join([f"{TAG_OPEN}{field}|{kind}|", reason, "|", source, TAG_CLOSE])
     return tf.debugging.Assert(cond, [message], summarize=1)
 
 

@@ -143,7 +143,9 @@ def records_manifest(cfg: ExperimentConfig, precision: str = "exact", compressio
 
 def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifest: pair_records.Manifest) -> dict:
     """Pair records of one log (`challenge_pair` of every sweep but the last) into `<out_dir>/<log_id>.pairs.tfrecord`
-    (atomically; an existing output is kept: resumable), labelled as `manifest.human_labels` says. Returns counts."""
+    (atomically; an existing output is kept: resumable), labelled as `manifest.human_labels` says. Returns counts.
+    A sweep further than `data.max_frame_gap_s` from the one before it (a missing sweep) fails the log before any
+    work, naming it; with `data.skip_bad_records` the examples across the gap are skipped and counted."""
     labels = manifest.human_labels
     log_id = os.path.basename(os.path.normpath(log_dir))
     out_path = os.path.join(out_dir, pair_records.records_file_name(log_id))
@@ -155,6 +157,13 @@ def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifes
     stamps = argoverse2.sweep_timestamps(log_dir)
     num_sweeps = len(stamps)
     max_gap_ns = cfg.data.max_frame_gap_s * 1e9
+
+    gaps = [(a, b) for a, b in zip(stamps[:-1], stamps[1:]) if b - a > max_gap_ns]
+    if gaps and not cfg.data.skip_bad_records:  # before any work: nothing is half-written
+        before_ns, time_ns = gaps[0]
+        raise argoverse2.Argoverse2FormatError(
+            os.path.join(log_dir, "sensors", "lidar", f"{time_ns}.feather"), "timestamp_ns",
+            pair_records.missing_sweep(time_ns, before_ns, f"{before_ns}.feather", cfg.data.max_frame_gap_s))
 
     def history_gap(index: int) -> bool:
         """Whether a real past sweep of sweep `index`'s example is further than the gap from the one after it."""
@@ -173,7 +182,7 @@ def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifes
                 continue
             if ex[pair_records.PARTNER_TIMESTAMP_KEY] - ex[pair_records.TIMESTAMP_KEY] > max_gap_ns or \
                     history_gap(index):
-                counts["skipped_pairs"] += 1  # a gap in the log: not a pair (data.max_frame_gap_s)
+                counts["skipped_pairs"] += 1  # across a gap in the log (data.skip_bad_records)
                 continue
             counts["pairs"] += 1
             counts["points_t0"] += int(ex["num_points_t0"])

@@ -4,7 +4,8 @@ user's tracked boxes by the paper's rule, or unlabelled for the NSFP pseudo-labe
 Input: sequence directories (`ff3d_tf.data.files.sequences`: point files sorted by name, their poses, optional
 `timestamps.txt`, optional box table `boxes.csv` / `boxes.feather`). Each two consecutive sweeps make a pair as WOD's
 do (`ff3d_tf.data.pairs.make_pair` under `pairs.raw_pair_config`: every point kept, the t-1 cloud moved into the t0
-vehicle frame with the two poses); a pair further apart than `data.max_frame_gap_s` is skipped and counted.
+vehicle frame with the two poses); a sweep further than `data.max_frame_gap_s` from the one before it is an error
+naming it (a missing sweep), or with `data.skip_bad_records` the pairs across the gap are skipped and counted.
 
 Labels (`OwnRecordsOptions.labels`): from the sequence's box table, each t0 point gets the flow and class of the paper's
 box rule (`ff3d_tf.labels.box_flow.bootstrap_flow`: rigid boxes of the track at t-1 and t0, ego motion removed; a box
@@ -108,8 +109,8 @@ def sequence_examples(seq: sequences.SweepSequence, cfg: ExperimentConfig, optio
                       counts: dict | None = None):
     """The pair records' contents (NumPy: `schema.PAIR_KEYS`, `pair_records.METADATA_KEYS`, `OWN_EXTRAS` when
     labelled) of every pair of consecutive sweeps of `seq` not further apart than `data.max_frame_gap_s`, in order.
-    A bad point file stops here naming it, or with `data.skip_bad_records` skips the pairs it is in (counted in
-    `counts["skipped_pairs"]`, as are the pairs too far apart). With `data.num_frames` = N > 2 each example also holds
+    A bad point file, or a sweep further than `data.max_frame_gap_s` from the one before it (a missing sweep), stops
+    here naming it, or with `data.skip_bad_records` skips the pairs it is in (counted in `counts["skipped_pairs"]`). With `data.num_frames` = N > 2 each example also holds
     the N - 2 sweeps before t-1 (`pairs.make_example`); after the sequence's start, a gap or a skipped file, the
     oldest sweep since stands in for those missing (`schema.FULL_HISTORY_KEY` False)."""
     counts = counts if counts is not None else {}
@@ -132,8 +133,14 @@ def sequence_examples(seq: sequences.SweepSequence, cfg: ExperimentConfig, optio
             continue
         if frame_tm1 is not None:
             gap_ns = seq.timestamps_ns[i] - seq.timestamps_ns[i - 1]
-            if gap_ns > max_gap_ns:
-                counts["skipped_pairs"] += 1  # a gap in the sequence: not a pair (data.max_frame_gap_s)
+            if gap_ns > max_gap_ns:  # a missing sweep: the examples across it would pair sweeps too far apart
+                err = PointFileError(seq.sweeps[i], "timestamp", pair_records.missing_sweep(
+                    seq.timestamps_ns[i], seq.timestamps_ns[i - 1],
+                    f"{os.path.basename(seq.sweeps[i - 1])} ({seq.timestamps_from})", cfg.data.max_frame_gap_s))
+                if not cfg.data.skip_bad_records:
+                    raise err
+                _LOG.warning("skipped: %s", err)
+                counts["skipped_pairs"] += 1
                 previous = []
             else:
                 labelled, owner = labelled_pair(frame_tm1, frame_t0, None if boxes is None else boxes[stems[i - 1]],

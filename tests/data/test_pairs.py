@@ -1,7 +1,9 @@
 """Frame pairing, ego-motion compensation and bucketed batching."""
 import numpy as np
+import pytest
 import tensorflow as tf
 
+from ff3d_tf.config import replace_config
 from ff3d_tf.data import pairs, wod_errors
 from ff3d_tf.data.wod import waymo
 
@@ -24,12 +26,26 @@ def test_pairs_move_previous_cloud_into_t0_frame(tiny_segment, tiny_records, tin
     assert np.abs(t[:3, 3]).max() > 0.1
 
 
-def test_large_gaps_are_skipped(tiny_records, tiny_config, tmp_path):
+@pytest.mark.parametrize("order, bad_record, gap_us", [((0, 2, 3), 1, 200_000), ((1, 0, 2), 1, -100_000)],
+                         ids=["missing", "out_of_order"])
+def test_a_missing_or_reordered_frame_is_named(tiny_records, tiny_config, tmp_path, order, bad_record, gap_us):
+    """Frames 0.1 s apart: without frame 1, record 1 comes 0.2 s after record 0; with frames 0 and 1 swapped, record
+    1 comes 0.1 s before record 0. Either is an error naming the file, the record and its timestamp."""
     path = str(tmp_path / "gap.tfrecord")
     with tf.io.TFRecordWriter(path) as w:
-        for i in (0, 1, 3):  # 1 -> 3 is a 0.2 s gap
+        for i in order:
             w.write(tiny_records[i])
-    assert len(list(pairs.pair_dataset([path], tiny_config))) == 1
+    stamp = waymo.decode_frame(tiny_records[order[bad_record]])["timestamp_micros"]
+    with pytest.raises(wod_errors.FrameDecodeError) as err:
+        with pairs.input_errors_named([path]):
+            list(pairs.pair_dataset([path], tiny_config))
+    assert (err.value.path, err.value.record_index, err.value.field) == (path, bad_record, "timestamp_micros")
+    assert f"timestamp_micros {stamp} comes {gap_us} us after" in str(err.value)
+    if gap_us > 0:  # skip_bad_records drops the examples across the gap: frames (3, 2) are left
+        skip = replace_config(tiny_config, {"data.skip_bad_records": True})
+        assert len(list(pairs.pair_dataset([path], skip))) == 1
+        three = replace_config(skip, {"data.num_frames": 3, "model.temporal": "delta"})
+        assert len(list(pairs.pair_dataset([path], three))) == 0  # (3, 2, 0) reaches across the gap
 
 
 def test_bucketed_batches(tiny_segment, tiny_config):
@@ -52,7 +68,6 @@ def _frame(xyz, flow, cls, pose):
 
 
 def test_study_knobs(tiny_config):
-    from ff3d_tf.config import replace_config
     # Points: vehicle, pedestrian, cyclist, background on the ground, background 1 m up (all moving but background).
     xyz = [[1, 0, 1.0], [2, 0, 1.0], [3, 0, 1.0], [4, 0, 0.05], [5, 0, 1.0]]
     flow = [[5, 0, 0], [1, 0, 0], [3, 0, 0], [0, 0, 0], [0, 0, 0]]
@@ -99,7 +114,6 @@ def test_input_pipeline_names_bad_input(tiny_records, tiny_config, tmp_path):
             with pairs.input_errors_named([path]):
                 list(pairs.pair_dataset([path], tiny_config))
     # Skipping: the garbage record leaves frames 0 and 2 (0.2 s apart: no pair); the truncated file ends after 2.
-    from ff3d_tf.config import replace_config
     skip = replace_config(tiny_config, {"data.skip_bad_records": True})
     assert len(list(pairs.pair_dataset([garbage], skip))) == 0
     assert len(list(pairs.pair_dataset([truncated], skip))) == 1

@@ -69,6 +69,28 @@ def test_job_resumes_and_names_a_bad_log(av2_sample_records, tiny_config, tmp_pa
     assert counts["pairs"] == 0 and counts["skipped_pairs"] == 1
 
 
+def test_a_missing_sweep_is_named_before_any_work(tiny_config, tmp_path):
+    """The sample log with its second sweep 0.3 s after the first (a sweep missing between them): the log fails
+    naming that sweep and the gap, before a record is written; skip_bad_records skips the one pair across it."""
+    import shutil
+    log = str(tmp_path / os.path.basename(AV2_LOG))
+    shutil.copytree(AV2_LOG, log)
+    first, second = argoverse2.sweep_timestamps(log)
+    late = first + 300_000_000
+    lidar = os.path.join(log, "sensors", "lidar")
+    os.rename(os.path.join(lidar, f"{second}.feather"), os.path.join(lidar, f"{late}.feather"))
+    manifest = av2.records_manifest(tiny_config)
+    out = str(tmp_path / "out")
+    os.makedirs(out)
+    with pytest.raises(argoverse2.Argoverse2FormatError, match=f"at {late} ns comes 0.300 s after {first}.feather"
+                       ) as err:
+        av2.write_log_records(log, out, tiny_config, manifest)
+    assert err.value.path == os.path.join(lidar, f"{late}.feather") and err.value.column == "timestamp_ns"
+    assert not os.listdir(out)
+    counts = av2.write_log_records(log, out, replace_config(tiny_config, {"data.skip_bad_records": True}), manifest)
+    assert counts["pairs"] == 0 and counts["skipped_pairs"] == 1
+
+
 def test_an_empty_sweep_is_named(tiny_config, tmp_path):
     import shutil
     import pyarrow as pa

@@ -106,7 +106,7 @@ def test_no_poses_and_no_boxes_are_refused_saying_what_to_give(sequence_dir, tmp
     assert own_records.check_sequence(bare, own_records.OwnRecordsOptions(labels=False)).box_table is None
 
 
-def test_a_gap_is_skipped_and_the_job_resumes(tiny_config, sequence_dir, tmp_path):
+def test_a_gap_is_named_or_skipped_and_the_job_resumes(tiny_config, sequence_dir, tmp_path):
     import shutil
     gappy = str(tmp_path / "gappy")
     shutil.copytree(sequence_dir, gappy)
@@ -116,10 +116,18 @@ def test_a_gap_is_skipped_and_the_job_resumes(tiny_config, sequence_dir, tmp_pat
     with open(os.path.join(gappy, "timestamps.txt"), "w") as f:
         f.write("".join(f"{t // 10 ** 9}.{t % 10 ** 9:09d}\n" for t in stamps))  # exact to the ns
     out = str(tmp_path / "out")
-    counts = own_records.run_records_job([gappy], out, tiny_config, own_records.OwnRecordsOptions())
+    manifest = own_records.records_manifest(tiny_config, True)
+    os.makedirs(out)
+    with pytest.raises(PointFileError, match=f"at {stamps[2]} ns comes 0.300 s after") as err:
+        own_records.write_sequence_records(gappy, out, tiny_config, manifest, own_records.OwnRecordsOptions())
+    sweep_2 = own_records.check_sequence(gappy, own_records.OwnRecordsOptions()).sweeps[2]
+    assert err.value.path == sweep_2 and err.value.field == "timestamp"
+    assert not [f for f in os.listdir(out) if f.endswith(pair_records.FILE_SUFFIX)]  # nothing half-written
+    skip = replace_config(tiny_config, {"data.skip_bad_records": True})
+    counts = own_records.run_records_job([gappy], out, skip, own_records.OwnRecordsOptions())
     assert counts["pairs"] == 2 and counts["skipped_pairs"] == 1
     assert [int(ex[pair_records.TIMESTAMP_KEY]) for ex in _examples(out)] == [stamps[1], stamps[3]]
-    again = own_records.run_records_job([gappy], out, tiny_config, own_records.OwnRecordsOptions())
+    again = own_records.run_records_job([gappy], out, skip, own_records.OwnRecordsOptions())
     assert again.get("already_done") == 1 and "pairs" not in again
 
 
