@@ -13,6 +13,7 @@ import pytest
 
 from conftest import ROOT
 
+from ff3d_tf.config import replace_config
 from ff3d_tf.data import beam_job, pair_records, pairs
 from ff3d_tf.data.wod import write_records
 from ff3d_tf.labels import ground, nsfp, pseudo_records
@@ -67,6 +68,32 @@ def test_output_holds_the_nsfp_flow_beside_the_input(records, tmp_path):
         assert 0 < fit.valid_t0.sum() < len(fit.valid_t0)  # ground and points beyond 8 m have no pseudo-label
         np.testing.assert_array_equal(g["flow_mps_pseudo_t0"], np.where(fit.valid_t0[:, None], fit.flow_mps_t0, 0))
     assert _label(records, str(tmp_path)) == {"already_done": 1}
+
+
+def test_records_of_three_sweeps_keep_their_past_sweeps(tiny_segment, tiny_config, tmp_path):
+    """The pseudo-label job on records of 3 sweeps: the output's manifest and records hold every input field, the
+    sweep before t-1 included, and the pseudo-labels are the fit of the pair (t0, t-1) as for 2 sweeps."""
+    cfg = replace_config(tiny_config, {"data.num_frames": 3, "model.temporal": "delta"})
+    inp = str(tmp_path / "in")
+    manifest = write_records.wod_manifest(cfg)
+    pair_records.write_manifest(inp, manifest)
+    write_records.write_segment(tiny_segment, inp, cfg, manifest)
+    files = pairs.list_segment_files(inp)
+    counts = _label((files, manifest), str(tmp_path / "out"))
+    assert counts["pairs"] == counts["fitted_pairs"] == 3
+    out_manifest = pair_records.read_manifest(str(tmp_path / "out"))
+    assert out_manifest.num_frames == 3
+    got = _read(str(tmp_path / "out" / os.path.basename(files[0])), out_manifest)
+    want = _read(files[0], manifest)
+    assert {"points_xyz_tm2_in_t0", "pose_tm2"} <= set(want[0])
+    for g, w in zip(got, want):
+        for k in w:
+            np.testing.assert_array_equal(g[k], w[k], err_msg=k)
+        dt_s = (int(w["timestamp_ns_t0"]) - int(w["timestamp_ns_partner"])) * 1e-9
+        ground_t0, ground_tm1 = ground.pair_ground_masks(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"])
+        fit = nsfp.nsfp_flow(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"], dt_s, OPTIONS, keep_t0=~ground_t0,
+                             keep_tm1=~ground_tm1)
+        np.testing.assert_array_equal(g["flow_mps_pseudo_t0"], np.where(fit.valid_t0[:, None], fit.flow_mps_t0, 0))
 
 
 def test_a_killed_run_resumes_to_the_same_bytes(records, tmp_path, monkeypatch):
