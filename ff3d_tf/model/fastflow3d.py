@@ -481,8 +481,9 @@ def build_model(cfg: ExperimentConfig, compile_mode: str | None = None, point_ch
     """
     if plan is None:
         plan, why = plan_lib.resolve(cfg.model, job=job, compile_mode=compile_mode)
-        _LOG.info(why["compile"])
-        _LOG.info(why["precision"])
+        for line in ("compile", "precision", "hint"):
+            if line in why:
+                _LOG.info(why[line])
     _LOG.info("execution plan: %s", plan.describe())
     # The model itself stays float32 so that it does not cast the input points (its dense layers compute in the
     # plan's precision).

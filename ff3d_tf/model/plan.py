@@ -113,7 +113,7 @@ def resolve(model: ModelConfig, job: str = "inference", compile_mode: str | None
     """(plan, why): the plan of `model` (the config's model section) for `job` ("train" or "inference") on
     `device_type` (default: the visible accelerator) and a CPU of `cpu_kind` (default: this process's,
     `compile_lib.cpu_class`). `compile_mode` overrides `model.compile`. `why` holds the log lines that say how
-    "auto" was resolved ("compile", "precision").
+    "auto" was resolved ("compile", "precision"), and "hint" where float32 is set and `auto` would take bfloat16.
 
     The rules, each measured where `ff3d_tf.model.compile` says: XLA's CPU backend takes the stride-2 gradients on
     phases (mode xla on a CPU); the decoder chain where the dense stages are float32 and XLA compiles them for training
@@ -126,6 +126,11 @@ def resolve(model: ModelConfig, job: str = "inference", compile_mode: str | None
     why = {"compile": f"model.compile={requested} -> {mode} for {job} ({compile_lib.describe(mode)})",
            "precision": f"model.mixed_precision={str(model.mixed_precision).lower()} -> {precision} "
                         f"({precision_reason}; {compile_lib.describe_precision(precision)})"}
+    if model.mixed_precision is False:
+        auto, auto_reason = compile_lib.resolve_precision("auto", mode, device_type)
+        if auto == "bfloat16":
+            why["hint"] = (f"model.mixed_precision=auto would run bfloat16 here ({auto_reason}): faster, and less "
+                           "memory to train (docs/benchmarks.md, bfloat16 on a CPU)")
     if model.forward == "table":
         return ExecutionPlan.table(mode, precision), why
     paper = model.head == "paper"

@@ -18,6 +18,7 @@ Faults of a multi-worker job (see README, "Faults and preemption"):
 """
 from __future__ import annotations
 
+import functools
 import os
 import re
 import socket
@@ -91,10 +92,19 @@ def make_strategy(peer_timeout_s: float | None = None, join_timeout_s: float | N
             raise not_joined(time.monotonic() - t0, e) from None
     gpus = tf.config.list_logical_devices("GPU")
     if gpus:
-        return tf.distribute.MirroredStrategy([d.name for d in gpus])
+        return mirrored_strategy(tuple(d.name for d in gpus))
     cpus = tf.config.list_logical_devices("CPU")
-    return tf.distribute.MirroredStrategy([d.name for d in cpus]) if len(cpus) > 1 else \
-        tf.distribute.OneDeviceStrategy("/cpu:0")
+    if len(cpus) > 1:
+        return mirrored_strategy(tuple(d.name for d in cpus))
+    return tf.distribute.OneDeviceStrategy("/cpu:0")
+
+
+@functools.cache
+def mirrored_strategy(devices: tuple[str, ...]) -> tf.distribute.MirroredStrategy:
+    """One MirroredStrategy per process and devices: each new one numbers its collectives from the same start, and
+    TensorFlow matched a second trainer's collectives with the first's of the same number, so a second model of
+    another size in the process failed its first step ("Shape mismatch in the collective instance")."""
+    return tf.distribute.MirroredStrategy(list(devices))
 
 
 def cluster_tasks(strategy: tf.distribute.Strategy) -> tuple[str, list[tuple[str, int, str]]] | None:

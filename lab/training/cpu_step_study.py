@@ -17,7 +17,10 @@ Every reading comes from a fresh child process (`lab.children.run_child`, pinned
             "after_plain_convolutions" (on request): "after" with the convolutions of "before" (what the forms save);
             "after_default_arenas" (on request): "after" without the start-up's malloc arena limit (not measured
             for a job whose start-up has none);
-            "after_huge_pages" (on request, training only): "after" with glibc asked for transparent huge pages.
+            "after_huge_pages" (on request, training only): "after" with glibc asked for transparent huge pages;
+            "after_no_pool", "after_eigen", "after_arenas" (on request): "after" without TensorFlow's BFC pool, with
+            the AVX2 training start-up (NO_POOL, `cpu.AVX2_STARTUP`), or with two glibc arenas, on a CPU where oneDNN
+            is on by default; "after_remat_arenas", "after_remat_no_pool": those with the encoder recomputed.
   job       "train" (the Trainer's own step: forward, loss, backward, Adam; batch 1, the process's peak resident
             memory) or "forward" (the compiled forward at each point count, in one process, round robin).
   mode      `model.compile`: auto, hybrid, xla, none.
@@ -52,15 +55,27 @@ SETTINGS = ("before", "after")
 # "after_huge_pages": "after" with glibc asked for transparent huge pages for the blocks it maps (HUGE_PAGES, set
 # before the child starts, as glibc reads it only then): the training program's temporaries, one block mapped afresh
 # every step, fault in by huge pages. Measured and not taken into the start-up (docs/benchmarks.md).
+# "after_no_pool": "after" with every tensor from malloc (TF_ONEDNN_USE_SYSTEM_ALLOCATOR=1: not the oneDNN CPU
+# allocator's BFC pool; TensorFlow's own CPU allocator not a pool either) and two glibc arenas (what the AVX2 training
+# start-up has) while oneDNN's operations stay on; "after_eigen": "after" with the AVX2
+# training start-up itself (`cpu.AVX2_STARTUP["train"]`: oneDNN off, two arenas): what each would give a CPU on which
+# TensorFlow turns oneDNN on by itself (AVX-512 VNNI/BF16, AMX).
+# "after_arenas", "after_remat_arenas", "after_remat_no_pool": "after" with two glibc arenas (the pool kept), and
+# those two with `model.remat_encoder=true` as well.
 ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat", "after_default_arenas", "after_plain_convolutions",
-                           "after_huge_pages")
+                           "after_huge_pages", "after_no_pool", "after_eigen", "after_arenas", "after_remat_arenas",
+                           "after_remat_no_pool")
+REMAT_SETTINGS = ("after_remat", "after_remat_arenas", "after_remat_no_pool")
+TWO_ARENAS = {"MALLOC_ARENA_MAX": "2"}
+NO_POOL = {"TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "1", "TF_CPU_ALLOCATOR_USE_BFC": "false", "MALLOC_ARENA_MAX": "2"}
 HUGE_PAGES = {"GLIBC_TUNABLES": "glibc.malloc.hugetlb=1"}
 # The settings that differ from "after" in the environment alone: not measured for a job whose start-up they leave as
 # "after" has it; and the settings measured for some jobs only.
-ENVIRONMENT_SETTINGS = ("after_onednn", "after_default_arenas")
+ENVIRONMENT_SETTINGS = ("after_onednn", "after_default_arenas", "after_no_pool", "after_eigen", "after_arenas")
 SETTING_JOBS = {"after_huge_pages": ("train",)}
 # What the settings and the emulations set: taken out of a child's inherited environment, recorded in its reading.
-KNOBS = tuple(sorted({k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS) | set(HUGE_PAGES)))
+KNOBS = tuple(sorted({k for e in cpu.EMULATIONS.values() for k in e} | set(cpu.STARTUP_KEYS) | set(HUGE_PAGES) |
+                    set(NO_POOL)))
 REMAT_OVERRIDE = "model.remat_encoder=true"
 JOBS = ("train", "forward")
 MODES = ("auto", "hybrid", "xla", "none")
@@ -98,6 +113,12 @@ def variant_environment(setting: str, job: str, cap: str, base: Mapping | None =
         caps.pop("MALLOC_ARENA_MAX", None)
     if setting == "after_huge_pages":
         caps.update(HUGE_PAGES)
+    if setting in ("after_no_pool", "after_remat_no_pool"):
+        caps.update(NO_POOL)
+    if setting in ("after_arenas", "after_remat_arenas"):
+        caps.update(TWO_ARENAS)
+    if setting == "after_eigen":
+        caps.update(cpu.AVX2_STARTUP["train"])
     return {**env, **caps}
 
 
@@ -450,7 +471,7 @@ def study(config: str, overrides: Sequence[str], train_points: int, forward_poin
             continue
         point_programs = "one" if setting == "before" else "per_cloud"
         kwargs = {"config": config, "mode": resolved, "warmup": warmup,
-                  "overrides": list(overrides) + ([REMAT_OVERRIDE] if setting == "after_remat" else []),
+                  "overrides": list(overrides) + ([REMAT_OVERRIDE] if setting in REMAT_SETTINGS else []),
                   "point_programs": point_programs,
                   "convolution_forms": "plain" if setting in ("before", "after_plain_convolutions") else "fast"}
         if job == "train":

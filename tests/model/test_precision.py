@@ -131,6 +131,10 @@ def test_build_model_resolves_auto_and_logs_it(tiny_config, tmp_path, monkeypatc
     assert "model.mixed_precision=true -> bfloat16 (as set;" in caplog.text
     assert built(AMD, _FLAGS_AMX, tiny_config).conv_dtype == "float32"
     assert "model.mixed_precision=false -> float32 (as set; everything in float32)" in caplog.text
+    assert "model.mixed_precision=auto would run bfloat16 here (CPU has amx_bf16)" in caplog.text  # the hint
+    caplog.clear()
+    built(INTEL, _FLAGS_AVX512_BF16, tiny_config)  # auto would keep float32: no hint
+    assert "as set; everything in float32" in caplog.text and "would run bfloat16" not in caplog.text
     assert keras.config.dtype_policy().name == "float32"  # the global policy is restored
 
 

@@ -7,6 +7,7 @@ import tensorflow as tf
 from replica_reference import GLOBAL_BATCH, Reference, batches, replica_config
 
 from ff3d_tf.config import replace_config
+from ff3d_tf.training import cluster
 from ff3d_tf.training.trainer import Trainer
 
 
@@ -24,7 +25,9 @@ def _assert_same(trainer, ref):
 
 
 def _two_replicas():
-    return tf.distribute.MirroredStrategy(["/cpu:0", "/cpu:1"])
+    """The product's one strategy per process and devices (`cluster.mirrored_strategy`): the file's models of
+    several sizes each train on it, as a second MirroredStrategy in a process failed (see there)."""
+    return cluster.mirrored_strategy(("/cpu:0", "/cpu:1"))
 
 
 # Without recomputation in `make test-slow` only: two replicas without it are also checked by the DeltaFlow test below
