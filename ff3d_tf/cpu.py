@@ -196,7 +196,8 @@ def startup_environment(job: str, info: CpuInfo | None = None, environ=None) -> 
       - no readable x86 flags, or no AVX2 among the usable ones: {} (TensorFlow's defaults);
       - a CPU on which TensorFlow turns oneDNN on by itself (`tensorflow_onednn_default`): TF_ENABLE_ONEDNN_OPTS=1,
         the same as its default, written out so that an emulation under caps gets what the real CPU gets (oneDNN's
-        own allocator pools memory there);
+        own allocator pools memory there). For training there, no pool or the AVX2 start-up lower the peak less
+        than bfloat16 does and slow the step (benchmarks/cpu_step_amx.json, docs/benchmarks.md): the pool stays;
       - an AVX2 CPU below those: `AVX2_STARTUP[job]`, whatever the precision: oneDNN stays off, so bfloat16 never
         meets oneDNN on a CPU where it has no bfloat16 convolutions.
 

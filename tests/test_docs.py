@@ -1076,6 +1076,89 @@ TABLES += (MEMORY_TABLE, CONV_FORMS_TABLE, CONV_FORMS_FORWARD_TABLE, CONV_FORMS_
            CHAIN_TABLE, CHAIN_FORWARD_TABLE, CHAIN_OWN_ISA_TABLE, PAGES_TABLE, PAGES_FORWARD_TABLE, CPU_TARGETS_TABLE)
 QUOTES += (CHAIN_STEPS_PEAK, PAGES_STEPS_PEAK, PAGES_FAULTS)
 
+# -- the training step on an AVX-512/AMX CPU (benchmark_cpu_step.py --cap none), against the issue's figures there
+# (benchmarks/cpu_step_peer_amx.json); what the process holds (profile_memory.py on the same kind of CPU)
+_AMX, _AMX_PEER = "cpu_step_amx.json", "cpu_step_peer_amx.json"
+_AMX_SETTINGS = {"after": ("after (the tools' start-up: oneDNN on, its BFC pool)", "float32"),
+                 "after_remat": ("after, `model.remat_encoder=true`", "float32"),
+                 "after_no_pool": ("after, every tensor from malloc, two arenas (no pool)", "float32"),
+                 "after_eigen": ("after, the AVX2 start-up (oneDNN off, two arenas)", "float32"),
+                 "after_bfloat16": ("after, `model.mixed_precision=true` (what `auto` takes here)", "bfloat16"),
+                 "after_remat_bfloat16": ("after, bfloat16 and `model.remat_encoder=true`", "bfloat16")}
+
+
+def _amx(setting, key, fmt="{}"):
+    return V(_AMX, ("summary", "train/auto", setting, key), fmt)
+
+
+def _amx_projected(setting):
+    """The issue's ff3d_tf step on this kind of CPU scaled by the run's ratio of `setting` to "after"."""
+    return Calc("{:,.0f} ms", lambda issue, ms, after: issue * ms / after,
+                (V(_AMX_PEER, "ff3d_tf_before/train_step_32000_ms"), _amx(setting, "step_median_ms"),
+                 _amx("after", "step_median_ms")))
+
+
+AMX_STEP_TABLE = Table(
+    B, Quote(B, "`lab/tools/benchmark_cpu_step.py --cap none --jobs train --modes auto --settings {} --rounds {} "
+                "--no_stages` (`benchmarks/" + _AMX + "`), paper config, {} points, batch 1, the middle over the "
+                "rounds of the median of {} steps after {} warm-up steps; {}, family/model {} ({} cores, its own "
+                "kernels); projected = the issue's ff3d_tf step on this kind of CPU ({} ms, float32, the start-up of "
+                "\"after\") scaled by this run's ratio to its own \"after\"; the peer's step there: {} ms, {} GB:",
+             (Calc("{}", lambda settings: ",".join(settings), (V(_AMX, "variants/train/auto"),)), V(_AMX, "rounds"),
+              V(_AMX, "train_points", "{:,}"), V(_AMX, "steps"), V(_AMX, "warmup"), V(_AMX, "cpu/model_name"),
+              V(_AMX, "cpu/family_model"), V(_AMX, "cpu/cpu_count"),
+              V(_AMX_PEER, "ff3d_tf_before/train_step_32000_ms", "{:,.0f}"),
+              V(_AMX_PEER, "peer/train_step_32000_ms", "{:,.0f}"), V(_AMX_PEER, "peer/train_step_32000_peak_gb"))),
+    ("setting", "precision", "runs", "step", "CPU", "peak", "projected step", "projected: over the peer"),
+    "llrrrrrr",
+    tuple((what, precision, _amx(setting, "mode"), _amx(setting, "step_median_ms", "{:,.0f} ms"),
+           _amx(setting, "step_cpu_median_ms", "{:,.0f} ms"), _amx(setting, "peak_rss_gb", "{:.2f} GB"),
+           _amx_projected(setting),
+           Calc("{:.2f}x", lambda peer, ms: peer / ms, (V(_AMX_PEER, "peer/train_step_32000_ms"),
+                                                         _amx_projected(setting))))
+          for setting, (what, precision) in _AMX_SETTINGS.items()))
+
+
+def _held(file, variant, key, fmt="{:.2f} GB"):
+    return V(file, ("variants", variant, "train", "between_calls") + tuple(key.split("/")), fmt)
+
+
+_AMX_MEMORY = (("memory_cpu_amx.json", "tf_bfc_pool", "float32, oneDNN's BFC pool (the default)"),
+               ("memory_cpu_amx.json", "system_allocator", "float32, every tensor from malloc"),
+               ("memory_cpu_amx.json", "xla_bfc_pool", "float32, compile mode xla, BFC pool"),
+               ("memory_cpu_amx_bf16.json", "tf_bfc_pool", "bfloat16, oneDNN's BFC pool"),
+               ("memory_cpu_amx_bf16.json", "system_allocator", "bfloat16, every tensor from malloc"))
+AMX_MEMORY_TABLE = Table(
+    B, Quote(B, "`lab/tools/profile_memory.py --kinds train --steps 3` (`benchmarks/memory_cpu_amx.json`, and with "
+                "`--set model.mixed_precision=true` `benchmarks/memory_cpu_amx_bf16.json`), paper config, {} points, "
+                "batch 1, {}, family/model {} ({} cores; the runs shared the machine, so their times are not "
+                "quoted):",
+             (V("memory_cpu_amx.json", "points", "{:,}"), V("memory_cpu_amx.json", "cpu/model_name"),
+              V("memory_cpu_amx.json", "cpu/family_model"), V("memory_cpu_amx.json", "cpu_count"))),
+    ("setting", "peak in a step", "held between steps", "glibc: mapped blocks", "glibc: arenas",
+     "TensorFlow's allocator: peak in use", "libraries (files)"), "lrrrrrr",
+    tuple((what, V(file, ("variants", variant, "train", "timed", "peak_rss_gb"), "{:.2f} GB"),
+           _held(file, variant, "rss_gb"), _held(file, variant, "mallinfo2/hblkhd"),
+           _held(file, variant, "mallinfo2/arena"),
+           Calc("{}", lambda gb: "none (malloc)" if not gb else f"{gb:.2f} GB",
+                (_held(file, variant, "tf_allocator/peak_gb"),)),
+           Calc("{:.2f} GB", lambda a, b: a + b, (_held(file, variant, "smaps_gb/file_tensorflow"),
+                                                  _held(file, variant, "smaps_gb/file_other"))))
+          for file, variant, what in _AMX_MEMORY))
+TABLES += (AMX_STEP_TABLE, AMX_MEMORY_TABLE)
+_AL, _AL1M = "latency_cpu_amx.json", "latency_cpu_amx_1m.json"
+AMX_FORWARD = Quote(
+    B, "The forward there, float32 (`lab/tools/benchmark_latency.py --modes auto,xla --points 32000 --train_points 0`, "
+       "`benchmarks/" + _AL + "`, {}; and `--modes auto --points 1000000 --skip_conv_floor` in a process of its own, "
+       "`benchmarks/" + _AL1M + "`): at 32,000 points `auto` ({}) takes {} the fastest convolution floor "
+       "(XLA's, {} ms; that of the graph kernels hybrid's convolutions are, {} ms) and `xla` {}; at 1,000,000 "
+       "points `auto` peaks at {}.",
+    (V(_AL, "cpu/model_name"), V(_AL, "modes/auto/resolved"),
+     V(_AL, "ratios/auto/min_points_over_fastest_conv_floor", "{:.2f}x"), V(_AL, "conv_floor/xla/median_ms", "{:,.0f}"),
+     V(_AL, "conv_floor/graph/median_ms", "{:,.0f}"), V(_AL, "ratios/xla/min_points_over_fastest_conv_floor", "{:.2f}x"),
+     V(_AL1M, "latency/1000000/auto/peak_rss_gb", "{:.2f} GB")))
+QUOTES += (AMX_FORWARD,)
+
 # -- the GRU head's cost beside the paper head (lab/tools/benchmark_head_cost.py); the note comes from the figures
 _HC = "head_cost_cpu.json"
 QUOTES += (

@@ -20,7 +20,8 @@ Every reading comes from a fresh child process (`lab.children.run_child`, pinned
             "after_huge_pages" (on request, training only): "after" with glibc asked for transparent huge pages;
             "after_no_pool", "after_eigen", "after_arenas" (on request): "after" without TensorFlow's BFC pool, with
             the AVX2 training start-up (NO_POOL, `cpu.AVX2_STARTUP`), or with two glibc arenas, on a CPU where oneDNN
-            is on by default; "after_remat_arenas", "after_remat_no_pool": those with the encoder recomputed.
+            is on by default; "after_remat_arenas", "after_remat_no_pool": those with the encoder recomputed;
+            "after_bfloat16", "after_remat_bfloat16": "after" and "after_remat" in bfloat16.
   job       "train" (the Trainer's own step: forward, loss, backward, Adam; batch 1, the process's peak resident
             memory) or "forward" (the compiled forward at each point count, in one process, round robin).
   mode      `model.compile`: auto, hybrid, xla, none.
@@ -62,10 +63,13 @@ SETTINGS = ("before", "after")
 # TensorFlow turns oneDNN on by itself (AVX-512 VNNI/BF16, AMX).
 # "after_arenas", "after_remat_arenas", "after_remat_no_pool": "after" with two glibc arenas (the pool kept), and
 # those two with `model.remat_encoder=true` as well.
+# "after_bfloat16", "after_remat_bfloat16": "after" and "after_remat" with `model.mixed_precision=true`.
 ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat", "after_default_arenas", "after_plain_convolutions",
                            "after_huge_pages", "after_no_pool", "after_eigen", "after_arenas", "after_remat_arenas",
-                           "after_remat_no_pool")
-REMAT_SETTINGS = ("after_remat", "after_remat_arenas", "after_remat_no_pool")
+                           "after_remat_no_pool", "after_bfloat16", "after_remat_bfloat16")
+REMAT_SETTINGS = ("after_remat", "after_remat_arenas", "after_remat_no_pool", "after_remat_bfloat16")
+BFLOAT16_SETTINGS = ("after_bfloat16", "after_remat_bfloat16")
+BFLOAT16_OVERRIDE = "model.mixed_precision=true"
 TWO_ARENAS = {"MALLOC_ARENA_MAX": "2"}
 NO_POOL = {"TF_ONEDNN_USE_SYSTEM_ALLOCATOR": "1", "TF_CPU_ALLOCATOR_USE_BFC": "false", "MALLOC_ARENA_MAX": "2"}
 HUGE_PAGES = {"GLIBC_TUNABLES": "glibc.malloc.hugetlb=1"}
@@ -471,7 +475,8 @@ def study(config: str, overrides: Sequence[str], train_points: int, forward_poin
             continue
         point_programs = "one" if setting == "before" else "per_cloud"
         kwargs = {"config": config, "mode": resolved, "warmup": warmup,
-                  "overrides": list(overrides) + ([REMAT_OVERRIDE] if setting in REMAT_SETTINGS else []),
+                  "overrides": list(overrides) + ([REMAT_OVERRIDE] if setting in REMAT_SETTINGS else []) +
+                  ([BFLOAT16_OVERRIDE] if setting in BFLOAT16_SETTINGS else []),
                   "point_programs": point_programs,
                   "convolution_forms": "plain" if setting in ("before", "after_plain_convolutions") else "fast"}
         if job == "train":
