@@ -26,8 +26,8 @@ from ff3d_tf.data.wod import waymo
 from ff3d_tf.data.wod.wod_decode import DecodeOptions
 from ff3d_tf.data.wod_errors import SOURCE_SEPARATOR, check, parse_tagged_error
 
-# Bucket sizes are base * {1, 1.5, 2, 3, 4, 6, 8, 12, ...}: at most 50% padding, ~2 buckets per doubling.
 _RECORD_INDEX = "record_index"  # a frame's index in its file, beside the decoded frame in the windows
+# Bucket sizes are base * {1, 1.5, 2, 3, 4, 6, 8, 12, ...}: at most 50% padding, ~2 buckets per doubling.
 _BUCKET_MULTIPLIERS = np.array(sorted({m * 2 ** k for k in range(0, 14) for m in (1.0, 1.5)}))
 
 
@@ -224,9 +224,15 @@ def _pairs_of_file(path, cfg: ExperimentConfig, inference_only: bool, skip_bad_r
         with tf.control_dependencies([check(in_time(frame_t0, frame_tm1), "timestamp_micros", reason, source)]):
             return tf.nest.map_structure(tf.identity, (window, real))
 
+    def adjacent_records(window, real):
+        # A record between them failed to decode and raised its own error; an input pipeline that reads on after an
+        # error (prefetching, parallel calls) must not see a second one for the gap that record leaves.
+        return tf.equal(window[0][_RECORD_INDEX], window[1][_RECORD_INDEX] + 1)
+
     windows = consecutive_frames(frames, cfg.data.num_frames)
     # With skip_bad_records an example across a missing or reordered frame is dropped; without it the file fails.
-    windows = windows.filter(close_in_time) if skip_bad_records else windows.map(checked_in_time)
+    windows = windows.filter(close_in_time) if skip_bad_records else \
+        windows.filter(adjacent_records).map(checked_in_time)
     return windows.map(to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 

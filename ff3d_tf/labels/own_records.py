@@ -110,9 +110,10 @@ def sequence_examples(seq: sequences.SweepSequence, cfg: ExperimentConfig, optio
     """The pair records' contents (NumPy: `schema.PAIR_KEYS`, `pair_records.METADATA_KEYS`, `OWN_EXTRAS` when
     labelled) of every pair of consecutive sweeps of `seq` not further apart than `data.max_frame_gap_s`, in order.
     A bad point file, or a sweep further than `data.max_frame_gap_s` from the one before it (a missing sweep), stops
-    here naming it, or with `data.skip_bad_records` skips the pairs it is in (counted in `counts["skipped_pairs"]`). With `data.num_frames` = N > 2 each example also holds
-    the N - 2 sweeps before t-1 (`pairs.make_example`); after the sequence's start, a gap or a skipped file, the
-    oldest sweep since stands in for those missing (`schema.FULL_HISTORY_KEY` False)."""
+    here naming it, or with `data.skip_bad_records` skips the pairs it is in (counted in `counts["skipped_pairs"]`).
+    With `data.num_frames` = N > 2 each example also holds the N - 2 sweeps before t-1 (`pairs.make_example`); after
+    the sequence's start, a gap or a skipped file, the oldest sweep since stands in for those missing
+    (`schema.FULL_HISTORY_KEY` False)."""
     counts = counts if counts is not None else {}
     counts.setdefault("skipped_pairs", 0)
     boxes = sequences.read_boxes(seq, dict(options.class_map)) if options.labels else None

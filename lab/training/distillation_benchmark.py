@@ -25,6 +25,7 @@ import os
 import time
 from typing import Callable
 
+from ff3d_tf import cpu
 from ff3d_tf.stages import Stages
 from lab import bench
 from lab.paths import ROOT, TOOLS_DIR
@@ -255,6 +256,7 @@ def summary(options: Options, command: str, outputs: StageOutputs, pseudo_scores
         "timings_s": timings_s,
         "stages_skipped_this_run": list(skipped),
         "machine": {"cpus": os.cpu_count(), "load_average_1_5_15": list(os.getloadavg())},
+        "cpu": cpu.describe(),
     }
 
 

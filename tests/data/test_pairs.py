@@ -4,7 +4,7 @@ import pytest
 import tensorflow as tf
 
 from ff3d_tf.config import replace_config
-from ff3d_tf.data import pairs, wod_errors
+from ff3d_tf.data import pair_records, pairs, wod_errors
 from ff3d_tf.data.wod import waymo
 
 
@@ -46,6 +46,26 @@ def test_a_missing_or_reordered_frame_is_named(tiny_records, tiny_config, tmp_pa
         assert len(list(pairs.pair_dataset([path], skip))) == 1
         three = replace_config(skip, {"data.num_frames": 3, "model.temporal": "delta"})
         assert len(list(pairs.pair_dataset([path], three))) == 0  # (3, 2, 0) reaches across the gap
+
+
+def test_a_bad_record_is_the_only_error_when_reading_goes_on(tiny_records, tiny_config, tmp_path):
+    """An input pipeline may read on after an error (prefetching, parallel calls): the record after a bad one then
+    follows the record before it, which is no missing frame of its own. Reading on after each error, only the bad
+    record's error comes, and the pair after it (frames 3, 2) still does."""
+    import corrupt_records
+    path = corrupt_records.write_records(str(tmp_path / "bad.tfrecord"), [
+        tiny_records[0], corrupt_records.nan_range_image(tiny_records[1], 4), tiny_records[2], tiny_records[3]])
+    iterator, errors, examples = iter(pairs.pair_dataset([path], tiny_config, metadata=True)), [], []
+    while True:
+        try:
+            examples.append(next(iterator))
+        except StopIteration:
+            break
+        except tf.errors.OpError as err:
+            errors.append(wod_errors.parse_tagged_error(err.message))
+    assert errors and all(e.field.startswith("lasers[SIDE_RIGHT].ri_return1") for e in errors), errors
+    stamp_us = waymo.decode_frame(tiny_records[3])["timestamp_micros"]
+    assert [int(ex[pair_records.TIMESTAMP_KEY]) for ex in examples] == [stamp_us * 1000]
 
 
 def test_bucketed_batches(tiny_segment, tiny_config):

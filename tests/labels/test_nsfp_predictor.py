@@ -1,7 +1,6 @@
 """NSFP as a predictor (`ff3d_tf.labels.nsfp_predictor`): the fit of the pseudo-label job on one pair, its gap from the
 pair's times or the default, ground predicted static, points outside the fitted region without a prediction; and
 `tools/predict.py --method nsfp` on a sweeps directory, no model."""
-import os
 import subprocess
 import sys
 

@@ -4,7 +4,6 @@ straight-line reference of the community evaluator in tests/test_metrics_av2.py)
 official masks, exactly their points. And submissions of synthetic Argoverse 2 logs in the three layouts over a mask
 archive in the official layout: sweeps, rows and order follow it, and the labels read back score 0."""
 import json
-import os
 import zipfile
 
 import numpy as np
