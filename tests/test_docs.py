@@ -600,10 +600,10 @@ def _verdict(key, who, fmt="{:.2f}"):
 DISTILLATION_TABLE = Table(
     B, Quote(B, "`lab/tools/benchmark_distillation.py`, synthetic WOD at lidar scale {} ({} training and {} held-out "
                 "segments), `{}`, {} training steps, NSFP capped at {} steps; error on the held-out pairs against "
-                "their human labels, a {}-core VM:",
+                "their human labels, {}, family/model {} ({} cores):",
              (V(_DI, "options/lidar_scale"), V(_DI, "options/train_segments"), V(_DI, "options/eval_segments"),
               V(_DI, "options/config"), V(_DI, "options/steps"), V(_DI, "options/nsfp/max_iterations"),
-              V(_DI, "machine/cpus"))),
+              V(_DI, "cpu/model_name"), V(_DI, "cpu/family_model"), V(_DI, "machine/cpus"))),
     ("", "moving (m/s)", "stationary (m/s)", "foreground dynamic EPE (m)"), "lrrr",
     (("FastFlow3D, human labels", _verdict("all_moving_mean_l2_mps", "human"),
       _verdict("all_stationary_mean_l2_mps", "human"), _verdict("fg_dynamic_epe_m", "human", "{:.3f}")),
