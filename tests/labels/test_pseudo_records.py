@@ -46,6 +46,23 @@ def _read(path, manifest):
                                                                                          manifest.extras)]
 
 
+def _assert_input_kept_and_pairs_fitted(got, want):
+    """Each output record holds its input record's fields, and pseudo-labels that are NSFP's fit of its pair (t0,
+    t-1) (same options, same seed: deterministic) without the ground of either cloud (WOD records carry no ground
+    mask: the height rule), labelled where the fit saw the point."""
+    assert len(got) == len(want)
+    for g, w in zip(got, want):
+        for k in w:
+            np.testing.assert_array_equal(g[k], w[k], err_msg=k)
+        dt_s = (int(w["timestamp_ns_t0"]) - int(w["timestamp_ns_partner"])) * 1e-9
+        ground_t0, ground_tm1 = ground.pair_ground_masks(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"])
+        fit = nsfp.nsfp_flow(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"], dt_s, OPTIONS, keep_t0=~ground_t0,
+                             keep_tm1=~ground_tm1)
+        np.testing.assert_array_equal(g["pseudo_valid_t0"], fit.valid_t0)
+        assert 0 < fit.valid_t0.sum() < len(fit.valid_t0)  # ground and points beyond 8 m have no pseudo-label
+        np.testing.assert_array_equal(g["flow_mps_pseudo_t0"], np.where(fit.valid_t0[:, None], fit.flow_mps_t0, 0))
+
+
 def test_output_holds_the_nsfp_flow_beside_the_input(records, tmp_path):
     counts = _label(records, str(tmp_path))
     assert counts["pairs"] == counts["fitted_pairs"] == 3 and counts["pseudo_labelled_points"] > 0
@@ -55,18 +72,7 @@ def test_output_holds_the_nsfp_flow_beside_the_input(records, tmp_path):
     assert out_manifest.extras == ("flow_mps_pseudo_t0", "pseudo_valid_t0")
     got, want = _read(out, out_manifest), _read(files[0], manifest)
     assert not os.path.exists(out + ".parts")
-    for g, w in zip(got, want):
-        for k in w:
-            np.testing.assert_array_equal(g[k], w[k], err_msg=k)
-        # The pseudo-labels are NSFP's fit of this pair (same options, same seed: deterministic) without the ground
-        # of either cloud (WOD records carry no ground mask: the height rule), labelled where the fit saw the point.
-        dt_s = (int(w["timestamp_ns_t0"]) - int(w["timestamp_ns_partner"])) * 1e-9
-        ground_t0, ground_tm1 = ground.pair_ground_masks(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"])
-        fit = nsfp.nsfp_flow(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"], dt_s, OPTIONS, keep_t0=~ground_t0,
-                             keep_tm1=~ground_tm1)
-        np.testing.assert_array_equal(g["pseudo_valid_t0"], fit.valid_t0)
-        assert 0 < fit.valid_t0.sum() < len(fit.valid_t0)  # ground and points beyond 8 m have no pseudo-label
-        np.testing.assert_array_equal(g["flow_mps_pseudo_t0"], np.where(fit.valid_t0[:, None], fit.flow_mps_t0, 0))
+    _assert_input_kept_and_pairs_fitted(got, want)
     assert _label(records, str(tmp_path)) == {"already_done": 1}
 
 
@@ -86,14 +92,7 @@ def test_records_of_three_sweeps_keep_their_past_sweeps(tiny_segment, tiny_confi
     got = _read(str(tmp_path / "out" / os.path.basename(files[0])), out_manifest)
     want = _read(files[0], manifest)
     assert {"points_xyz_tm2_in_t0", "pose_tm2"} <= set(want[0])
-    for g, w in zip(got, want):
-        for k in w:
-            np.testing.assert_array_equal(g[k], w[k], err_msg=k)
-        dt_s = (int(w["timestamp_ns_t0"]) - int(w["timestamp_ns_partner"])) * 1e-9
-        ground_t0, ground_tm1 = ground.pair_ground_masks(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"])
-        fit = nsfp.nsfp_flow(w["points_xyz_t0"], w["points_xyz_tm1_in_t0"], dt_s, OPTIONS, keep_t0=~ground_t0,
-                             keep_tm1=~ground_tm1)
-        np.testing.assert_array_equal(g["flow_mps_pseudo_t0"], np.where(fit.valid_t0[:, None], fit.flow_mps_t0, 0))
+    _assert_input_kept_and_pairs_fitted(got, want)
 
 
 def test_a_killed_run_resumes_to_the_same_bytes(records, tmp_path, monkeypatch):
