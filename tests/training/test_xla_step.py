@@ -95,10 +95,15 @@ def test_train_step_equals_keras_adam_training(exported_tiny, tiny_config):
     num_weights = len(model_weights(model))
     got = [np.asarray(x) for x in step.state[:num_weights]]
     for var, value in zip(model_weights(reference), got):
-        # Adam moves each weight by about lr = 1e-3 per step: a wrong update (sign, bias correction, epsilon) is off by
-        # ~1e-3; 1e-5 allows for a gradient element near 0 whose rounding Adam amplifies. BatchNorm statistics (up
-        # to ~12 here): float32 rounding.
-        np.testing.assert_allclose(value, var.numpy(), rtol=1e-6, atol=1e-5, err_msg=var.path)
+        # Adam moves each weight by about lr = 1e-3 per step, lr * g / (|g| + eps) in the first: a wrong update (sign,
+        # bias correction, epsilon) is off by ~1e-3 in most elements. Where an element's gradient is near 0 its
+        # rounding (another summation order) moves that quotient by up to lr, so a rare element may be off by more
+        # than rounding (CI saw 1.2e-5 in 1 of 10,368): every element within a quarter of one step's move, and
+        # all but 0.1% of them within 1e-5 + 1e-6 x |value| (BatchNorm statistics, up to ~12 here: float32 rounding).
+        want = var.numpy()
+        off = np.abs(value - want)
+        assert off.max() < 2.5e-4, (var.path, off.max())
+        assert np.mean(off > 1e-5 + 1e-6 * np.abs(want)) <= 1e-3, (var.path, np.sort(off.ravel())[-5:])
     moved = [np.abs(v - b).max() for v, b in zip(got, weights)]
     assert max(moved) > 1e-3
     assert int(np.asarray(step.state[-1])) == 2  # iterations
