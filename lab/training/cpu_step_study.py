@@ -20,8 +20,7 @@ Every reading comes from a fresh child process (`lab.children.run_child`, pinned
             "after_huge_pages" (on request, training only): "after" with glibc asked for transparent huge pages;
             "after_no_pool", "after_eigen", "after_arenas" (on request): "after" without TensorFlow's BFC pool, with
             the AVX2 training start-up (NO_POOL, `cpu.AVX2_STARTUP`), or with two glibc arenas, on a CPU where oneDNN
-            is on by default; "after_remat_arenas", "after_remat_no_pool": those with the encoder recomputed;
-            "after_bfloat16", "after_remat_bfloat16": "after" and "after_remat" in bfloat16.
+            is on by default; "after_bfloat16", "after_remat_bfloat16": "after" and "after_remat" in bfloat16.
   job       "train" (the Trainer's own step: forward, loss, backward, Adam; batch 1, the process's peak resident
             memory) or "forward" (the compiled forward at each point count, in one process, round robin).
   mode      `model.compile`: auto, hybrid, xla, none.
@@ -61,13 +60,12 @@ SETTINGS = ("before", "after")
 # start-up has) while oneDNN's operations stay on; "after_eigen": "after" with the AVX2
 # training start-up itself (`cpu.AVX2_STARTUP["train"]`: oneDNN off, two arenas): what each would give a CPU on which
 # TensorFlow turns oneDNN on by itself (AVX-512 VNNI/BF16, AMX).
-# "after_arenas", "after_remat_arenas", "after_remat_no_pool": "after" with two glibc arenas (the pool kept), and
-# those two with `model.remat_encoder=true` as well.
+# "after_arenas": "after" with two glibc arenas (the pool kept).
 # "after_bfloat16", "after_remat_bfloat16": "after" and "after_remat" with `model.mixed_precision=true`.
 ALL_SETTINGS = SETTINGS + ("after_onednn", "after_remat", "after_default_arenas", "after_plain_convolutions",
-                           "after_huge_pages", "after_no_pool", "after_eigen", "after_arenas", "after_remat_arenas",
-                           "after_remat_no_pool", "after_bfloat16", "after_remat_bfloat16")
-REMAT_SETTINGS = ("after_remat", "after_remat_arenas", "after_remat_no_pool", "after_remat_bfloat16")
+                           "after_huge_pages", "after_no_pool", "after_eigen", "after_arenas", "after_bfloat16",
+                           "after_remat_bfloat16")
+REMAT_SETTINGS = ("after_remat", "after_remat_bfloat16")
 BFLOAT16_SETTINGS = ("after_bfloat16", "after_remat_bfloat16")
 BFLOAT16_OVERRIDE = "model.mixed_precision=true"
 TWO_ARENAS = {"MALLOC_ARENA_MAX": "2"}
@@ -117,9 +115,9 @@ def variant_environment(setting: str, job: str, cap: str, base: Mapping | None =
         caps.pop("MALLOC_ARENA_MAX", None)
     if setting == "after_huge_pages":
         caps.update(HUGE_PAGES)
-    if setting in ("after_no_pool", "after_remat_no_pool"):
+    if setting == "after_no_pool":
         caps.update(NO_POOL)
-    if setting in ("after_arenas", "after_remat_arenas"):
+    if setting == "after_arenas":
         caps.update(TWO_ARENAS)
     if setting == "after_eigen":
         caps.update(cpu.AVX2_STARTUP["train"])
