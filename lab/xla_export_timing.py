@@ -12,6 +12,7 @@ from typing import Protocol, Sequence
 
 import numpy as np
 
+from ff3d_tf import cpu
 from ff3d_tf.xla_export_dir import load_reference, load_weights, read_manifest
 
 
@@ -58,7 +59,7 @@ def run_export(export_dir: str, timings: Sequence[ArtifactTiming], precisions=No
     manifest = read_manifest(export_dir)
     weights = load_weights(export_dir, manifest)
     device = jax.devices()[0]
-    result = {"export_dir": export_dir, "jax": jax.__version__, "platform": device.platform,
+    result = {"export_dir": export_dir, "host_cpu": cpu.describe(), "jax": jax.__version__, "platform": device.platform,
               "device": getattr(device, "device_kind", str(device)), "num_weights": len(weights),
               "exported_with": manifest.get("exported_with", {}), **{t.result_key: [] for t in timings},
               "skipped": []}

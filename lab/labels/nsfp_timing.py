@@ -16,6 +16,7 @@ import numpy as np
 
 from ff3d_tf.labels.nsfp_program import (CompiledNsfp, check_reference, entry_pair, initial_state, load_initial_params,
                                          load_reference, load_state_arrays, padded_clouds, read_manifest)
+from ff3d_tf import cpu
 from lab import bench
 
 
@@ -178,8 +179,8 @@ def compare_on_this_machine(export_dir: str, options=None, points: int | None = 
     readings = bench.round_robin(calls, rounds, warmup=1)
     ms = {name: bench.middle([r["ms"] for r in rows]) for name, rows in readings.items()}
     s = entry["segment_steps"]
-    result = {"points": entry["points"], "padded_points": entry["padded_points"], "grid_dims": entry["dims"],
-              "segment_steps": s, "rounds": rounds, "jax_compile_s": program.compile_s,
+    result = {"cpu": cpu.describe(), "points": entry["points"], "padded_points": entry["padded_points"],
+              "grid_dims": entry["dims"], "segment_steps": s, "rounds": rounds, "jax_compile_s": program.compile_s,
               "tf_seconds_per_step": ms["tf_fit"] / 1e3 / s, "jax_seconds_per_step": ms["jax_fit"] / 1e3 / s,
               "tf_grid_s_one_cloud": ms["tf_grid"] / 1e3, "jax_grid_s_one_cloud": ms["jax_grid"] / 1e3,
               "load_average_at_end": bench.load_average()}

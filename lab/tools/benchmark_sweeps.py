@@ -3,8 +3,8 @@ DeltaFlow's loss on 2 sweeps, and the GRU head on 3 and 5 sweeps (`model.tempora
 every seed on the same synthetic records and scored on held-out records beside zero flow, mean ± spread over the
 seeds.
 
-python lab/tools/benchmark_sweeps.py [--out_dir sweeps_out] [--json benchmarks/sweeps_synthetic.json] [--steps 300]
-    [--seeds 0,1,2] [--formats wod,av2] [--variants paper_pair,delta_3,...] [--train_segments 4 --eval_segments 2
+python lab/tools/benchmark_sweeps.py [--out_dir sweeps_out] [--json benchmarks/sweeps_synthetic.json] [--steps 1000]
+    [--seeds 0,1,2] [--formats wod,av2] [--variants paper_pair,delta_3,...] [--train_segments 12 --eval_segments 2
      --frames_per_segment 8 --lidar_scale 0.12 --av2_points_per_sweep 6000] [--config configs/synthetic_cpu.yaml]
     [--set key=value ...]
 
@@ -41,12 +41,12 @@ def main():
     p.add_argument("--config", default="configs/synthetic_cpu.yaml")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="config override for every training and evaluation (repeatable)")
-    p.add_argument("--steps", type=int, default=300, help="training steps of each run")
+    p.add_argument("--steps", type=int, default=1000, help="training steps of each run")
     p.add_argument("--seeds", default="0,1,2", help="comma-separated train.seed values: one run each per variant")
     p.add_argument("--formats", default="wod", help="comma-separated, of: " + ", ".join(sweeps_benchmark.FORMATS))
     p.add_argument("--variants", default=",".join(sweeps_benchmark.VARIANTS),
                    help="comma-separated, of: " + ", ".join(sweeps_benchmark.VARIANTS))
-    p.add_argument("--train_segments", type=int, default=4, help="WOD segments / AV2 logs for training")
+    p.add_argument("--train_segments", type=int, default=12, help="WOD segments / AV2 logs for training")
     p.add_argument("--eval_segments", type=int, default=2, help="held-out WOD segments / AV2 logs")
     p.add_argument("--frames_per_segment", type=int, default=8, help="WOD frames a segment / AV2 sweeps a log")
     p.add_argument("--lidar_scale", type=float, default=0.12, help="WOD: < 1 shrinks the range images")

@@ -35,6 +35,7 @@ import sys
 import threading
 import time
 
+from ff3d_tf import cpu
 from ff3d_tf.checkpoints import CHECKPOINTS_DIR
 from ff3d_tf.config import TINY_OVERRIDES, load_config
 from ff3d_tf.training.cluster import EXIT_PEER_LOST, EXIT_PREEMPTED, free_loopback_ports
@@ -332,7 +333,7 @@ def save_report(report: dict, path: str) -> None:
     if os.path.exists(path):
         with open(path) as f:
             merged = json.load(f)
-    merged[report["mode"]] = report
+    merged[report["mode"]] = {**report, "cpu": cpu.describe()}
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w") as f:
         json.dump(merged, f, indent=1)
