@@ -27,9 +27,9 @@ from lab.paths import ROOT, TOOLS_DIR
 from lab.training.distillation_benchmark import Stage, print_line, run_stages, write_json
 from lab.training.heads_benchmark import FORMATS, HEADLINE_KEYS, SPLIT_SEEDS, eval_metrics, generate_stages, headline
 
-# DeFlow's head with DeltaFlow's loss as its authors train it: their gradient clip (configs/deltaflow_av2.yaml) and a
-# rate below the config's, at which this head and loss diverge on the benchmark's batch (docs/benchmarks.md, "Several
-# sweeps"); the paper's model keeps the config's rate.
+# DeFlow's head with DeltaFlow's loss with its authors' gradient clip (configs/deltaflow_av2.yaml) and a rate below
+# the config's: at the config's rate, on the benchmark's batch, this head and loss diverged (the loss grew without
+# bound and the trainer stopped on non-finite steps), with the clip and without. The paper's model keeps the config's.
 GRU_DELTAFLOW = ("model.head=gru", "train.loss=deltaflow", "train.grad_clip_norm=5.0", "train.learning_rate=5e-4")
 # {variant: (sweeps, its config overrides)}: the issue's five rows.
 VARIANTS = {

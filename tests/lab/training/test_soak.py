@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
+from ff3d_tf import cpu
 from ff3d_tf.config import ConfigError
 from ff3d_tf.training.cluster import EXIT_PEER_LOST, EXIT_PREEMPTED
 from lab.training import soak
@@ -259,6 +260,7 @@ def test_save_report_keeps_the_other_mode(tmp_path):
         saved = json.load(f)
     assert sorted(saved) == ["plain", "service"]
     assert saved["plain"]["final_weights_equal_uninterrupted"] is True  # the newest of a mode wins
+    assert saved["plain"]["cpu"] == saved["service"]["cpu"] == cpu.describe()  # each mode names the CPU it ran on
 
 
 # -- settings and the work dir -----------------------------------------------------------------------------------------
