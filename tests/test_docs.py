@@ -718,19 +718,20 @@ SWEEPS_TABLE = Table(
               V(_SW, "cpu/cpu_count"))),
     ("data", "model", "moving (m/s)", "stationary (m/s)", "three-way mean EPE (m)", "bucketed dynamic (normalized)"),
     "llrrrr",
-    tuple(("wod", label, *(_spread_cell(f"formats/wod/per_variant/{v}/{c}") for c in _SW_COLUMNS))
-          for v, label in _SW_VARIANTS)
-    + (("wod", "zero flow", *(_spread_cell(f"formats/wod/zero_flow/{c}") for c in _SW_COLUMNS)),))
+    tuple(row for fmt in lookup(source(_SW), "formats")
+          for row in tuple((fmt, label, *(_spread_cell(f"formats/{fmt}/per_variant/{v}/{c}") for c in _SW_COLUMNS))
+                           for v, label in _SW_VARIANTS)
+          + ((fmt, "zero flow", *(_spread_cell(f"formats/{fmt}/zero_flow/{c}") for c in _SW_COLUMNS)),)))
 
 
-def _separation(which: str) -> Calc:
+def _separation(which: str, fmt: str) -> Calc:
     """The sentence part of one separation: "D m/s apart against a seed range of R m/s (apart | not apart)"."""
     def text(separations):
         (key,) = [k for k in separations if k.startswith(which)]
         s = separations[key]
         return (f"{s['difference']:.3f} m/s apart against a seed range of {s['largest_range']:.3f} m/s "
                 f"({'apart' if s['apart'] else 'not apart'})")
-    return Calc("{}", text, (V(_SW, "formats/wod/separations"),))
+    return Calc("{}", text, (V(_SW, f"formats/{fmt}/separations"),))
 
 
 SWEEPS_COST_TABLE = Table(
@@ -767,9 +768,12 @@ def _gpu_ref(precision, fmt):
 
 _SUB = "av2_submission.json"
 
-QUOTES = (
-    Quote(B, "Zero flow and the paper's model are {}; the best on moving points, `{}`, and the paper's model are {}.",
-          (_separation("zero_flow_vs_paper_pair"), V(_SW, "formats/wod/best_on_moving"), _separation("paper_pair_vs"))),
+QUOTES = tuple(
+    Quote(B, f"{fmt.upper()}: zero flow and the paper's model are {{}}; the best of the other variants on moving points, "
+             "`{}`, and the paper's model are {}.",
+          (_separation("zero_flow_vs_paper_pair", fmt), V(_SW, f"formats/{fmt}/best_variant"),
+           _separation("paper_pair_vs", fmt)))
+    for fmt in lookup(source(_SW), "formats")) + (
     Quote(B, "`delta` on 5 sweeps costs {} the pair's forward (the target: at most {}x)",
           (V(_SC, "delta_5_forward_bar/measured", "{:.2f}x"), V(_SC, "delta_5_forward_bar/target_at_most"))),
     Quote("docs/training.md", "{} for the pair, {} for `stack` of 3 and {} for `delta`, whatever the number of sweeps",

@@ -7,6 +7,8 @@ python lab/tools/benchmark_sweeps.py [--out_dir sweeps_out] [--json benchmarks/s
     [--seeds 0,1,2] [--formats wod,av2] [--variants paper_pair,delta_3,...] [--train_segments 12 --eval_segments 2
      --frames_per_segment 8 --lidar_scale 0.12 --av2_points_per_sweep 6000] [--config configs/synthetic_cpu.yaml]
     [--set key=value ...]
+python lab/tools/benchmark_sweeps.py --summarize_again J: J's summaries made again from the per-seed figures it
+    holds, by this code (after a change to what the summary says; no training)
 
 Variants (lab/training/sweeps_benchmark.py VARIANTS): paper_pair, gru_deltaflow_pair, stack_3, delta_3, delta_5.
 Stages per data format: synthetic data (training, held-out); pair records of both for each number of sweeps; each
@@ -16,6 +18,7 @@ EPE and the bucketed dynamic EPE, zero flow's, and whether zero flow, the paper'
 apart by more than the seeds' spread. Resumable (`ff3d_tf.stages`): a rerun with the same command skips what is done.
 """
 import argparse
+import json
 import os
 import sys
 
@@ -51,7 +54,15 @@ def main():
     p.add_argument("--frames_per_segment", type=int, default=8, help="WOD frames a segment / AV2 sweeps a log")
     p.add_argument("--lidar_scale", type=float, default=0.12, help="WOD: < 1 shrinks the range images")
     p.add_argument("--av2_points_per_sweep", type=int, default=6000)
+    p.add_argument("--summarize_again", metavar="JSON", help="rewrite this result's summaries; run nothing")
     args = p.parse_args()
+    if args.summarize_again:
+        with open(args.summarize_again) as f:
+            result = sweeps_benchmark.summarize_again(json.load(f), " ".join(["lab/tools/benchmark_sweeps.py"] +
+                                                                               sys.argv[1:]))
+        sweeps_benchmark.write_json(args.summarize_again, result)
+        print("\n".join(sweeps_benchmark.table(result)) + f"\nwrote {args.summarize_again}")
+        return
     formats, variants = _words(args.formats), _words(args.variants)
     if not formats or any(f not in sweeps_benchmark.FORMATS for f in formats) or len(set(formats)) != len(formats):
         p.error(f"--formats {args.formats!r}: distinct, of {', '.join(sweeps_benchmark.FORMATS)}")

@@ -50,3 +50,19 @@ def test_format_summary_picks_the_best_and_compares_it_with_the_paper():
     versus = summary["separations"]["paper_pair_vs_best_delta_3"]
     assert versus["difference"] == pytest.approx(2.1 - 3.6 / 3) and versus["largest_range"] == pytest.approx(0.5)
     assert versus["apart"]
+    assert summary["best_variant"] == "delta_3"
+
+
+def test_the_best_variant_is_compared_with_the_paper_also_when_the_paper_is_best():
+    heads = {"paper_pair": [1.0, 1.1, 1.2], "delta_3": [3.0, 2.0, 2.4], "delta_5": [2.5, 2.4, 2.3, 2.4]}
+    per_seed = {k: [{name: (v if name == "moving_mps" else None) for name in sb.HEADLINE_KEYS} for v in values]
+                for k, values in heads.items()}
+    zero = {name: (5.0 if name == "moving_mps" else None) for name in sb.HEADLINE_KEYS}
+    summary = sb.format_summary(per_seed, zero)
+    assert (summary["best_on_moving"], summary["best_variant"]) == ("paper_pair", "delta_5")  # means 1.1, 2.47, 2.4
+    versus = summary["separations"]["paper_pair_vs_best_delta_5"]
+    # |1.1 - 2.4| = 1.3 against the larger of the two ranges, delta_3's (1.0) not counted: max(0.2, 0.2) = 0.2
+    assert versus["difference"] == pytest.approx(1.3) and versus["largest_range"] == pytest.approx(0.2)
+    # summarized again from the per-seed figures a JSON keeps: the same summary, the command recorded
+    again = sb.summarize_again({"formats": {"wod": summary}, "command": "run"}, "again")
+    assert again["formats"]["wod"] == summary and again["summarized_again_by"] == "again"
