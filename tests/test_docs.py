@@ -769,8 +769,8 @@ def _gpu_ref(precision, fmt):
 _SUB = "av2_submission.json"
 
 QUOTES = tuple(
-    Quote(B, f"{fmt.upper()}: zero flow and the paper's model are {{}}; the best of the other variants on moving points, "
-             "`{}`, and the paper's model are {}.",
+    Quote(B, f"{fmt.upper()}: zero flow and the paper's model are {{}}; the best of the other variants on moving "
+             "points, `{}`, and the paper's model are {}.",
           (_separation("zero_flow_vs_paper_pair", fmt), V(_SW, f"formats/{fmt}/best_variant"),
            _separation("paper_pair_vs", fmt)))
     for fmt in lookup(source(_SW), "formats")) + (

@@ -14,9 +14,9 @@ import time
 
 import numpy as np
 
+from ff3d_tf import cpu
 from ff3d_tf.labels.nsfp_program import (CompiledNsfp, check_reference, entry_pair, initial_state, load_initial_params,
                                          load_reference, load_state_arrays, padded_clouds, read_manifest)
-from ff3d_tf import cpu
 from lab import bench
 
 

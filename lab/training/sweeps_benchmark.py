@@ -29,7 +29,8 @@ from lab.training.heads_benchmark import FORMATS, HEADLINE_KEYS, SPLIT_SEEDS, ev
 
 # DeFlow's head with DeltaFlow's loss with its authors' gradient clip (configs/deltaflow_av2.yaml) and a rate below
 # the config's: at the config's rate, on the benchmark's batch, this head and loss diverged (the loss grew without
-# bound and the trainer stopped on non-finite steps), with the clip and without. The paper's model keeps the config's.
+# bound and the trainer stopped on non-finite steps), with the clip and without. The paper's model keeps the config's
+# rate.
 GRU_DELTAFLOW = ("model.head=gru", "train.loss=deltaflow", "train.grad_clip_norm=5.0", "train.learning_rate=5e-4")
 # {variant: (sweeps, its config overrides)}: the issue's five rows.
 VARIANTS = {
