@@ -774,6 +774,11 @@ QUOTES = tuple(
           (_separation("zero_flow_vs_paper_pair", fmt), V(_SW, f"formats/{fmt}/best_variant"),
            _separation("paper_pair_vs", fmt)))
     for fmt in lookup(source(_SW), "formats")) + (
+    Quote(B, "The GRU variants train with DeltaFlow's gradient clip, `{}`, and a lower rate than the paper model's, "
+             "`{}`: at the config's rate, on the benchmark's batch, their loss grew without bound",
+          tuple(Calc("{}", lambda sets, key=key: next(s for s in sets if s.startswith(key)),
+                     (V(_SW, "options/variants/delta_5/set"),))
+                for key in ("train.grad_clip_norm=", "train.learning_rate="))),
     Quote(B, "`delta` on 5 sweeps costs {} the pair's forward (the target: at most {}x)",
           (V(_SC, "delta_5_forward_bar/measured", "{:.2f}x"), V(_SC, "delta_5_forward_bar/target_at_most"))),
     Quote("docs/training.md", "{} for the pair, {} for `stack` of 3 and {} for `delta`, whatever the number of sweeps",
