@@ -718,10 +718,9 @@ SWEEPS_TABLE = Table(
               V(_SW, "cpu/cpu_count"))),
     ("data", "model", "moving (m/s)", "stationary (m/s)", "three-way mean EPE (m)", "bucketed dynamic (normalized)"),
     "llrrrr",
-    tuple(row for fmt in lookup(source(_SW), "formats")
-          for row in tuple((fmt, label, *(_spread_cell(f"formats/{fmt}/per_variant/{v}/{c}") for c in _SW_COLUMNS))
-                           for v, label in _SW_VARIANTS)
-          + ((fmt, "zero flow", *(_spread_cell(f"formats/{fmt}/zero_flow/{c}") for c in _SW_COLUMNS)),)))
+    tuple((fmt, label, *(_spread_cell(f"formats/{fmt}/{part}/{c}") for c in _SW_COLUMNS))
+          for fmt in lookup(source(_SW), "formats")
+          for part, label in [(f"per_variant/{v}", label) for v, label in _SW_VARIANTS] + [("zero_flow", "zero flow")]))
 
 
 def _separation(which: str, fmt: str) -> Calc:

@@ -56,10 +56,10 @@ def main():
     p.add_argument("--av2_points_per_sweep", type=int, default=6000)
     p.add_argument("--summarize_again", metavar="JSON", help="rewrite this result's summaries; run nothing")
     args = p.parse_args()
+    command = " ".join(["lab/tools/benchmark_sweeps.py"] + sys.argv[1:])
     if args.summarize_again:
         with open(args.summarize_again) as f:
-            result = sweeps_benchmark.summarize_again(json.load(f), " ".join(["lab/tools/benchmark_sweeps.py"] +
-                                                                               sys.argv[1:]))
+            result = sweeps_benchmark.summarize_again(json.load(f), command)
         sweeps_benchmark.write_json(args.summarize_again, result)
         print("\n".join(sweeps_benchmark.table(result)) + f"\nwrote {args.summarize_again}")
         return
@@ -80,8 +80,7 @@ def main():
         frames_per_segment=args.frames_per_segment, lidar_scale=args.lidar_scale,
         av2_points_per_sweep=args.av2_points_per_sweep, variants=variants)
     try:
-        sweeps_benchmark.run(options, os.path.abspath(args.out_dir), os.path.abspath(args.json),
-                             " ".join(["lab/tools/benchmark_sweeps.py"] + sys.argv[1:]))
+        sweeps_benchmark.run(options, os.path.abspath(args.out_dir), os.path.abspath(args.json), command)
     except StageError as e:
         sys.exit(f"benchmark_sweeps: {e}")
 
