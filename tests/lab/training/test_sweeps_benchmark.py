@@ -40,29 +40,49 @@ def test_spread_and_apart_by_hand():
     assert not sb.apart(a, sb.spread([1.15, 1.55]))["apart"]
 
 
-def test_format_summary_picks_the_best_and_compares_it_with_the_paper():
-    heads = {"paper_pair": [{"moving_mps": v} for v in (2.0, 2.1, 2.2)],
-             "delta_3": [{"moving_mps": v} for v in (1.0, 1.5, 1.1)]}
-    per_seed = {k: [{name: h.get(name) for name in sb.HEADLINE_KEYS} for h in rows] for k, rows in heads.items()}
-    summary = sb.format_summary(per_seed, {name: (5.0 if name == "moving_mps" else None) for name in sb.HEADLINE_KEYS})
+def _per_seed(figures: dict) -> dict:
+    """{variant: [{figure: value}] per seed} with every other headline figure None."""
+    return {v: [{name: seed.get(name) for name in sb.HEADLINE_KEYS} for seed in seeds] for v, seeds in figures.items()}
+
+
+def test_format_summary_picks_the_best_and_compares_it_with_the_paper_on_each_figure():
+    per_seed = _per_seed({
+        "paper_pair": [{"moving_mps": v, "bucketed_dynamic_norm_epe": b} for v, b in [(2.0, .6), (2.1, .7), (2.2, .8)]],
+        "delta_3": [{"moving_mps": v, "bucketed_dynamic_norm_epe": .3} for v in (1.0, 1.5, 1.1)],
+        "stack_3": [{"moving_mps": 3.0, "bucketed_dynamic_norm_epe": b} for b in (.1, .2, .3)]})
+    zero = {name: {"moving_mps": 5.0, "bucketed_dynamic_norm_epe": 1.0}.get(name) for name in sb.HEADLINE_KEYS}
+    summary = sb.format_summary(per_seed, zero)
     assert summary["best_on_moving"] == "delta_3"
-    assert summary["separations"]["zero_flow_vs_paper_pair"]["apart"]  # 5.0 vs 2.1, ranges 0 and 0.2
-    versus = summary["separations"]["paper_pair_vs_best_delta_3"]
+    moving = summary["separations"]["moving_mps"]
+    assert moving["best_variant"] == "delta_3"
+    assert moving["zero_flow_vs_paper_pair"]["apart"]  # 5.0 vs 2.1, ranges 0 and 0.2
+    versus = moving["paper_pair_vs_best_variant"]
+    # |2.1 - 3.6 / 3| = 0.9 against the larger range, delta_3's 0.5: apart
     assert versus["difference"] == pytest.approx(2.1 - 3.6 / 3) and versus["largest_range"] == pytest.approx(0.5)
     assert versus["apart"]
-    assert summary["best_variant"] == "delta_3"
+    # the board's figure has its own best variant: stack_3 (mean 0.2) before delta_3 (0.3); |0.7 - 0.2| = 0.5
+    # against the larger range, 0.2 for both: apart; zero flow's 1.0 against the paper's 0.7, range 0.2: apart
+    bucketed = summary["separations"]["bucketed_dynamic_norm_epe"]
+    assert bucketed["best_variant"] == "stack_3"
+    assert bucketed["paper_pair_vs_best_variant"] == pytest.approx(
+        {"difference": 0.5, "largest_range": 0.2, "apart": True})
+    assert bucketed["zero_flow_vs_paper_pair"] == pytest.approx(
+        {"difference": 0.3, "largest_range": 0.2, "apart": True})
 
 
 def test_the_best_variant_is_compared_with_the_paper_also_when_the_paper_is_best():
     heads = {"paper_pair": [1.0, 1.1, 1.2], "delta_3": [3.0, 2.0, 2.4], "delta_5": [2.5, 2.4, 2.3, 2.4]}
-    per_seed = {k: [{name: (v if name == "moving_mps" else None) for name in sb.HEADLINE_KEYS} for v in values]
-                for k, values in heads.items()}
+    per_seed = _per_seed({k: [{"moving_mps": v} for v in values] for k, values in heads.items()})
     zero = {name: (5.0 if name == "moving_mps" else None) for name in sb.HEADLINE_KEYS}
     summary = sb.format_summary(per_seed, zero)
-    assert (summary["best_on_moving"], summary["best_variant"]) == ("paper_pair", "delta_5")  # means 1.1, 2.47, 2.4
-    versus = summary["separations"]["paper_pair_vs_best_delta_5"]
+    moving = summary["separations"]["moving_mps"]
+    assert (summary["best_on_moving"], moving["best_variant"]) == ("paper_pair", "delta_5")  # means 1.1, 2.47, 2.4
+    versus = moving["paper_pair_vs_best_variant"]
     # |1.1 - 2.4| = 1.3 against the larger of the two ranges, delta_3's (1.0) not counted: max(0.2, 0.2) = 0.2
     assert versus["difference"] == pytest.approx(1.3) and versus["largest_range"] == pytest.approx(0.2)
+    # a figure no run has: no best variant, nothing apart
+    bucketed = summary["separations"]["bucketed_dynamic_norm_epe"]
+    assert bucketed["best_variant"] is None and not bucketed["zero_flow_vs_paper_pair"]["apart"]
     # summarized again from the per-seed figures a JSON keeps: the same summary, the command recorded
     again = sb.summarize_again({"formats": {"wod": summary}, "command": "run"}, "again")
     assert again["formats"]["wod"] == summary and again["summarized_again_by"] == "again"
