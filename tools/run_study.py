@@ -41,14 +41,15 @@ def main():
     p.add_argument("--max_eval_pairs", type=int, default=0, help="0 = every validation pair")
     args = p.parse_args()
     _common.load(args)  # the base config must be valid
-    train_files, val_files = list_segment_files(args.train_dir), list_segment_files(args.val_dir)
     try:
+        train_files = list_segment_files(args.train_dir)
+        list_segment_files(args.val_dir)  # the evaluations' data is there before any variant trains
         values = tuple(float(v) for v in args.values.split(",") if v.strip())
         variants = studies.variants(args.study, len(train_files), values)
         for v in variants:  # every variant's training and evaluation config, before any work
             load_config(args.config, args.set + _sets(v.training_changes()))
             load_config(args.config, args.set + _sets(v.input_changes))
-    except (ValueError, ConfigError) as e:
+    except (ValueError, ConfigError, FileNotFoundError) as e:
         sys.exit(f"study error: {e}")
     study_dir = os.path.join(args.out_dir, args.study)
     print(f"study {args.study}: {len(variants)} variants ({', '.join(v.name for v in variants)}) -> {study_dir}",

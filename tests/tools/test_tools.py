@@ -46,6 +46,16 @@ def test_bad_config_fails_before_work(tmp_path):
     assert not (tmp_path / "m").exists()
 
 
+def test_run_study_without_validation_data_fails_before_work(tiny_segment, tmp_path):
+    empty = tmp_path / "val"
+    empty.mkdir()
+    out = subprocess.run([sys.executable, "tools/run_study.py", "--study", "ground_removal", "--config", "",
+                          "--train_dir", os.path.dirname(tiny_segment), "--val_dir", str(empty), "--out_dir",
+                          str(tmp_path / "out")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode != 0 and f"study error: no TFRecord files at {empty}" in out.stderr
+    assert "Traceback" not in out.stderr and not (tmp_path / "out").exists()
+
+
 @pytest.mark.slow  # two trainings through the study tool: ~110 s
 def test_run_study_ground_removal(tiny_segment, tmp_path):
     from conftest import TINY_OVERRIDES
