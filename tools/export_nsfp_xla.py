@@ -13,6 +13,7 @@ with the device's. Needs the `xla` extra; time the result where only JAX is inst
 `python lab/tools/run_nsfp_xla.py DIR`, or on this machine's CPU against TensorFlow's own fit with
 `python lab/tools/benchmark_nsfp_xla_cpu.py DIR`.
 """
+import argparse
 import dataclasses
 import os
 
@@ -25,7 +26,8 @@ def main():
     _common.start("inference")  # before TensorFlow is imported
     from ff3d_tf.labels.nsfp import MEASURED_FIT_OPTIONS
     from ff3d_tf.labels.nsfp_export import export_nsfp
-    p = _common.parser(__doc__)
+    # NSFP's options are these flags: the tool reads no experiment config (no --config, no --set)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True)
     p.add_argument("--points", default="64000,150000", help="cloud sizes (both clouds of a pair), comma-separated")
     p.add_argument("--segment_steps", type=int, default=50, help="Adam steps per call of the fit program")
