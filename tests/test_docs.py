@@ -710,12 +710,13 @@ def _spread_cell(path):
 
 SWEEPS_TABLE = Table(
     B, Quote(B, "`benchmarks/sweeps_synthetic.json`: {} training steps a run, seeds {}, `{}`, {} training and {} "
-                "held-out synthetic WOD segments of {} frames (lidar scale {}); error on the held-out pairs, mean ± "
-                "sample standard deviation over the seeds, {} ({} cores):",
+                "held-out synthetic WOD segments, and as many Argoverse 2 logs, of {} sweeps each (WOD at lidar scale "
+                "{}, AV2 at {} points a sweep); error on the held-out pairs (AV2: the 2024 challenge's protocol), "
+                "mean ± sample standard deviation over the seeds, {} ({} cores):",
              (V(_SW, "options/steps"), Calc("{}", lambda s: ", ".join(map(str, s)), (V(_SW, "options/seeds"),)),
               V(_SW, "options/config"), V(_SW, "options/train_segments"), V(_SW, "options/eval_segments"),
-              V(_SW, "options/frames_per_segment"), V(_SW, "options/lidar_scale"), V(_SW, "cpu/model_name"),
-              V(_SW, "cpu/cpu_count"))),
+              V(_SW, "options/frames_per_segment"), V(_SW, "options/lidar_scale"),
+              V(_SW, "options/av2_points_per_sweep", "{:,}"), V(_SW, "cpu/model_name"), V(_SW, "cpu/cpu_count"))),
     ("data", "model", "moving (m/s)", "stationary (m/s)", "three-way mean EPE (m)", "bucketed dynamic (normalized)"),
     "llrrrr",
     tuple((fmt, label, *(_spread_cell(f"formats/{fmt}/{part}/{c}") for c in _SW_COLUMNS))
