@@ -344,6 +344,13 @@ def ratio(fmt: str, a, b) -> Calc:
     return Calc(fmt, lambda x, y: x / y, (a, b))
 
 
+def on_cpu(file: str, cpu: str = "cpu") -> Calc:
+    """The CPU a JSON was measured on, as `ff3d_tf.cpu.describe()` recorded it under `cpu`: "NAME (N cores,
+    family/model F/M)"."""
+    return Calc("{}", lambda name, count, family_model: f"{name} ({count} cores, family/model {family_model})",
+                (V(file, f"{cpu}/model_name"), V(file, f"{cpu}/cpu_count"), V(file, f"{cpu}/family_model")))
+
+
 def render(cell) -> str:
     return cell if isinstance(cell, str) else cell.text()
 
@@ -387,8 +394,8 @@ def _ms(file, path):
 
 # -- inference on CPU by compile mode (benchmark_latency.py)
 _LAT = "latency_cpu.json"
-_LAT_CAPTION = Quote(B, "`benchmarks/latency_cpu.json`, paper config, batch 1, median of {} calls, a {}-core VM:",
-                     (V(_LAT, "latency/32000/auto/runs"), V(_LAT, "cpu_count")))
+_LAT_CAPTION = Quote(B, "`benchmarks/latency_cpu.json`, paper config, batch 1, median of {} calls, {}:",
+                     (V(_LAT, "latency/32000/auto/runs"), on_cpu(_LAT)))
 _MODES = ("auto", "hybrid", "xla", "none")
 LATENCY_TABLE = Table(B, _LAT_CAPTION, ("`model.compile`", "forward, 32,000 points", "forward, 1,000,000 points",
                                         "training step, 32,000 points"), "lrrr",
@@ -444,9 +451,9 @@ MEMORY_TABLE = Table(
 _ONNX = "onnx_cpu.json"
 ONNX_TABLE = Table(
     B, Quote(B, "`lab/tools/benchmark_onnx.py`, paper config, random weights, {} points, medians of {} calls, "
-                "onnxruntime {} with {} threads, a {}-core VM:",
+                "onnxruntime {} with {} threads, {}:",
              (V(_ONNX, "points", "{:,}"), V(_ONNX, "runs"), V(_ONNX, "versions/onnxruntime"),
-              V(_ONNX, "onnxruntime_intra_op_threads"), V(_ONNX, "cpu_count"))),
+              V(_ONNX, "onnxruntime_intra_op_threads"), on_cpu(_ONNX))),
     ("runtime", "median", "over TensorFlow", "largest flow difference from TensorFlow"), "lrrr",
     (("TensorFlow (SavedModel forward)", _ms(_ONNX, "latency/tensorflow/median_ms"), "1", "0"),
      ("onnxruntime, `loop`", _ms(_ONNX, "latency/onnxruntime_loop/median_ms"),
@@ -504,9 +511,9 @@ def _rate(density, key):
 
 INPUT_TABLE = Table(
     B, Quote(B, "`lab/tools/benchmark_input.py`, the trainer's whole input (read, pair, shuffle, batch, pad), pairs/s "
-                "on 1 core of a {}-core VM; synthetic WOD segments at WOD's density ({} points a frame) and at "
+                "on 1 core of {}; synthetic WOD segments at WOD's density ({} points a frame) and at "
                 "the synthetic default's ({}):",
-             (V(_IN, "cpus_available"), V(_IN, "densities/wod/sizes/points_per_frame", "{:,}"),
+             (on_cpu(_IN), V(_IN, "densities/wod/sizes/points_per_frame", "{:,}"),
               V(_IN, "densities/synthetic/sizes/points_per_frame", "{:,}"))),
     ("input", "WOD density", "synthetic default"), "lrr",
     (("decode WOD frames on the fly", _rate("wod", "decode_pair_batch"), _rate("synthetic", "decode_pair_batch")),
@@ -520,7 +527,7 @@ def _av2_rate(key):
 
 AV2_INPUT_TABLE = Table(
     B, Quote(B, "`lab/tools/benchmark_input.py --av2`, synthetic Argoverse 2 logs at {} points a sweep, pairs/s on 1 "
-                "core of a {}-core VM:", (V(_IN, "av2/points_per_sweep", "{:,}"), V(_IN, "av2/cpus_available"))),
+                "core of {}:", (V(_IN, "av2/points_per_sweep", "{:,}"), on_cpu(_IN, "av2/cpu"))),
     ("step", "pairs/s"), "lr",
     (("labels made in the input pipeline (no records)", _av2_rate("labels_in_pipeline")),
      ("trainer's input from records, exact", _av2_rate("records_exact")),
@@ -530,8 +537,8 @@ AV2_INPUT_TABLE = Table(
 _TR = "training_cpu.json"
 TRAINING_INPUT_TABLE = Table(
     B, Quote(B, "`lab/tools/benchmark_training.py`, paper config, batch 1, synthetic WOD segments at full size "
-                "({} points a cloud), a {}-core VM:",
-             (V(_TR, "input[cores=1]/mean_points_t0", "{:,.0f}"), V(_TR, "cpus_available"))),
+                "({} points a cloud), {}:",
+             (V(_TR, "input[cores=1]/mean_points_t0", "{:,.0f}"), on_cpu(_TR))),
     ("measurement", "result"), "lr",
     (("training input alone, 1 core", V(_TR, "input[cores=1]/pairs_per_s", "{:.1f} pairs/s")),
      ("training input alone, 2 cores", V(_TR, "input[cores=2]/pairs_per_s", "{:.1f} pairs/s")),
@@ -800,10 +807,10 @@ QUOTES = tuple(
     Quote("README.md", "the model exactly as the paper's architecture table ({} parameters)",
           (V(_LAT, "params", "{:,}"),)),
     Quote(B, "Peak resident memory of a process that runs the forward on {} points, one compile mode per process "
-             "(`benchmarks/latency_cpu_1m.json`, a {}-core VM): {} GB in `auto`, {} GB in `xla`.",
-          (V(_1M, "latency/1000000/auto/padded_points", "{:,}"), V(_1M, "cpu_count"),
-           V(_1M, ("memory_single_mode_runs", "after/auto", "1000000", "peak_rss_gb"), "{:.2f}"),
-           V(_1M, ("memory_single_mode_runs", "after/xla", "1000000", "peak_rss_gb"), "{:.2f}"))),
+             "(`benchmarks/latency_cpu_1m.json`, {}): {} GB in `auto`, {} GB in `xla`.",
+          (V(_1M, "latency/1000000/auto/padded_points", "{:,}"), on_cpu(_1M),
+           V(_1M, "memory_single_mode_runs/auto/1000000/peak_rss_gb", "{:.2f}"),
+           V(_1M, "memory_single_mode_runs/xla/1000000/peak_rss_gb", "{:.2f}"))),
     Quote(B, "On random weights of the paper config (`benchmarks/bf16_cpu_amd.json`, {}), bfloat16 moves the flow by "
              "at most {} m/s at 32,000 points (mean {} of the mean flow) and {} m/s at 1,000,000 points (mean {}).",
           (V(_AMD, "cpu/model_name"), V(_AMD, f"{_AMD_DIFF}/32000/max", "{:.2f}"),
@@ -835,11 +842,11 @@ QUOTES = tuple(
     Quote(B, "the input is {} times faster than the step",
           (V(_TR, "input_headroom", "{:.0f}"),)),
     Quote(B, "Through the exported float32 program a step takes {} s against {} s in TensorFlow, a grid build {} s "
-             "against {} s per cloud ({} points, NSFP's published one-sided fit; `benchmarks/nsfp_xla_cpu.json`, "
-             "jax {} on the CPU of a 2-core VM).",
+             "against {} s per cloud ({} points, the pseudo-label job's fit; `benchmarks/nsfp_xla_cpu.json`, "
+             "jax {} on {}).",
           (V(_NX, "jax_seconds_per_step", "{:.2f}"), V(_NX, "tf_seconds_per_step", "{:.2f}"),
            V(_NX, "jax_grid_s_one_cloud", "{:.1f}"), V(_NX, "tf_grid_s_one_cloud", "{:.1f}"),
-           V(_NX, "points", "{:,}"), V(_NX, "exported_with/jax"))),
+           V(_NX, "points", "{:,}"), V(_NX, "exported_with/jax"), on_cpu(_NX))),
     Quote(B, "Bar met: {}. The two tools took {} s together; the fit stopped early after {} Adam steps, and {} of the "
              "scored points had no pseudo-label (they are scored as zero flow).",
           (Calc("{}", lambda met: "yes" if met else "no", (V(_NSFP, f"{_AV2S}/meets_bar"),)),
@@ -865,10 +872,10 @@ QUOTES = tuple(
            V(_SOAK, "service/summary/not_as_expected"), V(_SOAK, "service/summary/hangs"),
            V(_SOAK, "service/summary/lost_checkpoints"),
            V(_SOAK, "service/loss_window_steps"), V(_SOAK, "service/loss_ratio", "{:.2f}"))),
-    Quote(B, "(`benchmarks/annotation_cpu.json`, a synthetic segment of {} frames, {} points a frame, a {}-core VM): "
+    Quote(B, "(`benchmarks/annotation_cpu.json`, a synthetic segment of {} frames, {} points a frame, {}): "
              "the first segment of a process takes {} s to its first frame (the decoder is traced once per process), "
              "then {} frames/s; later segments run at {} frames/s.",
-          (V(_AN, "frames"), V(_AN, "points_per_frame", "{:,.0f}"), V(_AN, "cpu_count"),
+          (V(_AN, "frames"), V(_AN, "points_per_frame", "{:,.0f}"), on_cpu(_AN),
            V(_AN, "cold_first_frame_seconds", "{:.1f}"), V(_AN, "cold_steady_fps", "{:.1f}"),
            V(_AN, "warm_steady_fps", "{:.1f}"))),
 )

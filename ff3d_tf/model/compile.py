@@ -21,7 +21,8 @@ operations on, with AVX-512 kernels: AMD Zen 4, Intel Skylake-SP and later), "on
 only: TF_ENABLE_ONEDNN_OPTS=1 on an AMD Zen 3 or an Intel Haswell to Comet Lake) and "eigen" (oneDNN off: Eigen's
 kernels, TensorFlow's default on an AVX2-only CPU and the project's start-up choice there,
 `ff3d_tf.cpu.startup_environment`). The rule of each entry and its measurement:
-  onednn_avx512  hybrid for both jobs, the fastest forward there (benchmarks/latency_cpu.json);
+  onednn_avx512  hybrid for both jobs: the fastest training step there, and the fastest forward on large clouds
+                 (on small ones xla's can be slightly faster) (benchmarks/latency_cpu.json);
   eigen          per job, in the start-up's environment for the job (`ff3d_tf.cpu.AVX2_STARTUP`): to train, the
                  mode with the lowest peak memory, xla (also the fastest step there); to serve, the fastest forward,
                  hybrid (xla holds a little less) (benchmarks/cpu_step_avx2.json, "after",

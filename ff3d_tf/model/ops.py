@@ -10,7 +10,7 @@ from __future__ import annotations
 import tensorflow as tf
 
 # Points per chunk of the point encoder's loop: bounds the [chunk, C] feature memory at any cloud size and keeps a
-# chunk's traffic in cache (the chunk sizes compared: benchmarks/latency_cpu_1m.json).
+# chunk's traffic in cache.
 POINT_CHUNK = 1 << 16
 # A chunk size that no int32 point count exceeds: the whole cloud is one chunk, and the loop is left out of the graph
 # also when the point count is known only at run time (a static count of one chunk always runs without a loop). The
