@@ -433,8 +433,8 @@ BF16_TABLE = Table(
 _MEM = "memory_cpu.json"
 MEMORY_TABLE = Table(
     B, Quote(B, "`lab/tools/profile_memory.py`, paper config, {} points, batch 1, resident memory (GB) of a process "
-                "on a {}-core VM; CPU time relative to the default:",
-             (V(_MEM, "points", "{:,}"), V(_MEM, "cpu_count"))),
+                "on {}; CPU time relative to the default:",
+             (V(_MEM, "points", "{:,}"), on_cpu(_MEM))),
     ("allocator", "between training steps", "between inference calls", "CPU time per step",
      "CPU time per inference call"), "lrrrr",
     (("default (oneDNN's pool)", V(_MEM, "variants/tf_bfc_pool/summary/train/rss_between_gb", "{:.2f}"),
