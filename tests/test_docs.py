@@ -1190,8 +1190,7 @@ QUOTES += (
 # -- `make demo` on an AVX2-only CPU (tools/demo.py's demo_summary.json, issue 27's coffee-length first run)
 _DEMO = "demo_zen3.json"
 QUOTES += (
-    Quote(B, "{} ({} cores, family/model {})", (V(_DEMO, "demo/cpu/model_name"), V(_DEMO, "demo/cpu/cpu_count"),
-                                                V(_DEMO, "demo/cpu/family_model"))),
+    Quote(B, "{}", (on_cpu(_DEMO, "demo/cpu"),)),
     Quote(B, "took {} s: {} s to install what the demo needs (`make install-core`, every package downloaded) and {} s "
              "for the demo, {} s of it training; the model's error on moving points is {} of zero flow's ({} vs {} "
              "m/s).",
