@@ -80,10 +80,10 @@ def test_service_roles_as_processes(tmp_path):
                 p.wait(timeout=30)
 
 
-def _service_process(*args):
+def _service_process(*args, stderr=subprocess.DEVNULL):
     proc = subprocess.Popen([sys.executable, "tools/data_service.py", *args], cwd=ROOT,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE, stderr=stderr,
+                            text=True)
     lines = []
     threading.Thread(target=lambda: lines.extend((time.monotonic(), ln) for ln in proc.stdout), daemon=True).start()
     deadline = time.monotonic() + 300
@@ -91,6 +91,63 @@ def _service_process(*args):
         assert proc.poll() is None and time.monotonic() < deadline, f"{args} did not start: {lines}"
         time.sleep(0.05)
     return proc, lines
+
+
+def _serving_port(lines) -> int:
+    return int(next(ln for _, ln in lines if "serving on port" in ln).split("port ")[1].split(";")[0])
+
+
+def test_a_worker_stopped_while_a_client_waits_on_it_exits_within_its_bound(tmp_path):
+    """SIGTERM to a worker that is producing a client's element which never comes (it opens a FIFO no one writes, so
+    its open waits for a writer): TensorFlow's stop alone waits without end (a minute, tried); the worker exits with
+    status 1 after --stop_timeout_s, its one line said first, no traceback."""
+    fifo = str(tmp_path / "never_written")
+    os.mkfifo(fifo)
+    stop_timeout_s = 2.0
+    procs = []
+    try:
+        dispatcher, dispatcher_lines = _service_process("--dispatcher")
+        procs.append(dispatcher)
+        address = f"localhost:{_serving_port(dispatcher_lines)}"
+        with open(tmp_path / "worker.err", "w") as err:
+            worker, _ = _service_process("--worker", "--dispatcher_address", address,
+                                         "--stop_timeout_s", str(stop_timeout_s), stderr=err)
+        procs.append(worker)
+        procs.append(subprocess.Popen(
+            [sys.executable, "-c", "import sys, tensorflow as tf; list(tf.data.TextLineDataset(sys.argv[1]).apply("
+             "tf.data.experimental.service.distribute('parallel_epochs', 'grpc://' + sys.argv[2])))", fifo, address],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        deadline = time.monotonic() + 120
+        while not _waits_in_fifo_open(worker.pid):  # the worker has started on the client's element
+            assert worker.poll() is None and time.monotonic() < deadline, "the worker never opened the FIFO"
+            time.sleep(0.1)
+        t0 = time.monotonic()
+        worker.send_signal(signal.SIGTERM)
+        worker.wait(timeout=60)
+        took_s = time.monotonic() - t0
+        messages = (tmp_path / "worker.err").read_text()
+        assert worker.returncode == 1, (worker.returncode, messages)
+        assert stop_timeout_s <= took_s < stop_timeout_s + 30, took_s
+        assert "worker: stopping; if the server still waits on a client's request after 2 s" in messages, messages
+        assert "Traceback" not in messages and "Thread 0x" not in messages, messages
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+def _waits_in_fifo_open(pid: int) -> bool:
+    """Whether a thread of process `pid` waits in open() for a FIFO's writer (the kernel's wait channel)."""
+    tasks = f"/proc/{pid}/task"
+    for tid in os.listdir(tasks):
+        try:
+            with open(f"{tasks}/{tid}/wchan") as f:
+                if f.read() == "wait_for_partner":
+                    return True
+        except OSError:  # the thread ended meanwhile
+            pass
+    return False
 
 
 def _fault_config(tiny_config):
