@@ -655,8 +655,8 @@ def _soak(mode, kind, key, fmt="{}"):
 SOAK_TABLE = Table(
     B, Quote(B, "`lab/tools/soak_train.py`, two trainers on loopback (tiny model), {}; {} faults over {} "
                 "steps without the service, {} over {} with it:",
-             (on_cpu(_SOAK, "plain/cpu"), V(_SOAK, "plain/faults_injected"), V(_SOAK, "plain/final_step"), V(_SOAK, "service/faults_injected"),
-              V(_SOAK, "service/final_step"))),
+             (on_cpu(_SOAK, "plain/cpu"), V(_SOAK, "plain/faults_injected"), V(_SOAK, "plain/final_step"),
+              V(_SOAK, "service/faults_injected"), V(_SOAK, "service/final_step"))),
     ("run", "fault", "count", "detected, median / max", "resumed, median / max", "steps lost, max"), "llrrrr",
     tuple(("trainers alone" if mode == "plain" else "with the tf.data service", kind, _soak(mode, kind, "count"),
            Calc("{}", lambda a, b: f"{a:.1f} / {b:.1f} s",

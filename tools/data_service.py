@@ -49,8 +49,8 @@ def main():
         while True:  # not server.join(): a blocking C++ call would keep Python's signal handling (Ctrl-C) waiting
             time.sleep(1.0)
     except KeyboardInterrupt:
-        print(f"{role_name}: stopping; if the server still waits on a client's request after {args.stop_timeout_s:g} s, "
-              "the process leaves it and exits with status 1", file=sys.stderr, flush=True)
+        print(f"{role_name}: stopping; if the server still waits on a client's request after "
+              f"{args.stop_timeout_s:g} s, the process leaves it and exits with status 1", file=sys.stderr, flush=True)
         # TensorFlow's stop can wait without end on a request in flight (its gRPC server shuts down without a
         # deadline) and holds the GIL meanwhile, so no Python thread could bound it: faulthandler's watchdog, a C
         # thread, ends the process (status 1) after the timeout, its thread dump going nowhere.
