@@ -56,6 +56,11 @@ def test_training_learns_from_the_service(service, tiny_segment, tiny_config, tm
     assert sum(w.server._num_tasks() for w in workers) >= 1  # noqa: SLF001
 
 
+def _serving_port(line: str) -> int:
+    """The port of a role's "... serving on port N[; ...]" line."""
+    return int(line.split("port ")[1].split(";")[0])
+
+
 def test_service_roles_as_processes(tmp_path):
     """`tools/data_service.py` starts a dispatcher and a worker that serve a dataset to this process."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -65,7 +70,7 @@ def test_service_roles_as_processes(tmp_path):
     try:
         line = dispatcher.stdout.readline()
         assert "dispatcher serving on port" in line, line
-        port = int(line.split("port ")[1].split(";")[0])
+        port = _serving_port(line)
         worker = subprocess.Popen([sys.executable, "tools/data_service.py", "--worker", "--dispatcher_address",
                                    f"localhost:{port}"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                                   stderr=subprocess.DEVNULL, text=True)
@@ -93,10 +98,6 @@ def _service_process(*args, stderr=subprocess.DEVNULL):
     return proc, lines
 
 
-def _serving_port(lines) -> int:
-    return int(next(ln for _, ln in lines if "serving on port" in ln).split("port ")[1].split(";")[0])
-
-
 def test_a_worker_stopped_while_a_client_waits_on_it_exits_within_its_bound(tmp_path):
     """SIGTERM to a worker that is producing a client's element which never comes (it opens a FIFO no one writes, so
     its open waits for a writer): TensorFlow's stop alone waits without end (a minute, tried); the worker exits with
@@ -108,7 +109,7 @@ def test_a_worker_stopped_while_a_client_waits_on_it_exits_within_its_bound(tmp_
     try:
         dispatcher, dispatcher_lines = _service_process("--dispatcher")
         procs.append(dispatcher)
-        address = f"localhost:{_serving_port(dispatcher_lines)}"
+        address = f"localhost:{_serving_port(next(ln for _, ln in dispatcher_lines if 'serving on port' in ln))}"
         with open(tmp_path / "worker.err", "w") as err:
             worker, _ = _service_process("--worker", "--dispatcher_address", address,
                                          "--stop_timeout_s", str(stop_timeout_s), stderr=err)
@@ -140,14 +141,16 @@ def test_a_worker_stopped_while_a_client_waits_on_it_exits_within_its_bound(tmp_
 def _waits_in_fifo_open(pid: int) -> bool:
     """Whether a thread of process `pid` waits in open() for a FIFO's writer (the kernel's wait channel)."""
     tasks = f"/proc/{pid}/task"
-    for tid in os.listdir(tasks):
-        try:
-            with open(f"{tasks}/{tid}/wchan") as f:
-                if f.read() == "wait_for_partner":
-                    return True
-        except OSError:  # the thread ended meanwhile
-            pass
-    return False
+    return any(_wait_channel(f"{tasks}/{tid}/wchan") == "wait_for_partner" for tid in os.listdir(tasks))
+
+
+def _wait_channel(path: str) -> str:
+    """A thread's wait channel; "" when the thread ended meanwhile."""
+    try:
+        with open(path) as f:
+            return f.read()
+    except OSError:
+        return ""
 
 
 def _fault_config(tiny_config):
