@@ -29,8 +29,9 @@ import keras
 import tensorflow as tf
 
 from ff3d_tf import internals
-from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.config import ExperimentConfig, load_config, replace_config
 from ff3d_tf.model import build_model
+from ff3d_tf.model.fastflow3d import model_definition
 
 DAMAGED_DIR = "damaged"
 CHECKPOINTS_DIR = "checkpoints"  # model_dir/checkpoints/ckpt-N
@@ -224,6 +225,27 @@ def saved_config(path: str) -> str | None:
     return None
 
 
+def with_model_definition(cfg: ExperimentConfig, path: str) -> ExperimentConfig:
+    """`cfg` checked against the config saved with the model at `path` (`saved_config`; nothing to check without
+    one): `CheckpointError` naming that file and each key of `model_definition` whose value differs (such a model
+    restores into the other config's variables, and computes something else). A `data.partner` that `cfg` leaves
+    unset is the saved one's."""
+    saved_path = saved_config(path)
+    if saved_path is None:
+        return cfg
+    saved = load_config(saved_path)
+    if cfg.data.partner is None and saved.data.partner is not None:
+        cfg = replace_config(cfg, {"data.partner": saved.data.partner})
+    ours, theirs = model_definition(cfg), model_definition(saved)
+    differ = [f"{k}={theirs.get(k)} there, {ours.get(k)} here" for k in sorted(set(ours) | set(theirs))
+              if ours.get(k) != theirs.get(k)]
+    if differ:
+        raise CheckpointError(saved_path, "the model saved here is of another definition: " + "; ".join(differ) +
+                              " (the tools load this config when given no --config; check --config and --set, or "
+                              "use another model_dir)", mismatch=True)
+    return cfg
+
+
 def _own_config(path: str) -> str:
     """"; its own config is X (...)" for the error of a checkpoint that does not fit the model; "" without one."""
     saved = saved_config(path)
@@ -251,7 +273,7 @@ def restore_model(cfg: ExperimentConfig, checkpoint_path: str):
     config (`saved_config`) and, for a model_dir, the newest intact one.
     Nothing is moved: choosing another checkpoint is the caller's decision.
     """
-    model = build_model(cfg)
+    model = build_model(with_model_definition(cfg, checkpoint_path))
     root = tf.train.Checkpoint(model=model)
     prefix = resolve_checkpoint(checkpoint_path)
     try:

@@ -94,6 +94,10 @@ class DataConfig:
     # Sweeps per example: the current one and num_frames - 1 past ones, each moved into the current vehicle frame
     # (2: the paper's pair; more for model.temporal stack or delta; at most schema.MAX_NUM_FRAMES).
     num_frames: int = 2
+    # Which sweep the t-1 slot holds (`schema.PARTNERS`): previous (WOD, own sequences) or next (Argoverse 2 challenge
+    # records). None: from the data (the pair records' manifest; previous for WOD read on the fly). Training saves the
+    # value it resolved with the model; a model that has none is of "previous".
+    partner: str | None = None
     ego_motion_compensation: bool = True  # move the t-1 cloud into the t0 vehicle frame (paper appendix)
     crop_to_grid: bool = True  # drop points outside the pillar grid in the input pipeline (they get no prediction)
     skip_bad_records: bool = False  # False: a bad record stops the job with its file/record/field
@@ -133,6 +137,9 @@ class DataConfig:
         if isinstance(self.num_frames, bool) or not isinstance(self.num_frames, int):
             raise ConfigError(f"data.num_frames={self.num_frames!r}: an integer")
         _in_range("data.num_frames", self.num_frames, 2, schema.MAX_NUM_FRAMES)
+        if self.partner is not None and self.partner not in schema.PARTNERS:
+            raise ConfigError(f"data.partner={self.partner!r}: one of {', '.join(schema.PARTNERS)}, or null (from "
+                              "the data)")
         _in_range("data.shuffle_buffer", self.shuffle_buffer, 1, None)
         _in_range("data.max_training_segments", self.max_training_segments, 0, None)
         if self.class_ablation not in CLASS_ABLATIONS:
@@ -554,6 +561,14 @@ def load_config(path: str | None = None, overrides: list[str] | tuple[str, ...] 
     except ConfigError as e:
         raise ConfigError(f"{path or '<defaults>'}: {e}") from None
     return cfg.validate()
+
+
+def partner_matters(cfg: ExperimentConfig) -> bool:
+    """Whether a model of `cfg` computes otherwise when its partner sweep lies on the other side of t0
+    (`data.partner`): delta's difference is taken from the newest sweep, and the older slots of more than 2 sweeps
+    hold other sweeps; the pair (2 sweeps, pair or stack) reads its two clouds the same either way (its flow is the
+    motion from the partner cloud to the t0 cloud over their gap)."""
+    return cfg.model.temporal == "delta" or cfg.data.num_frames > 2
 
 
 def replace_config(cfg: ExperimentConfig, changes: dict[str, Any]) -> ExperimentConfig:

@@ -129,6 +129,22 @@ def sweep_clouds(num_frames: int) -> tuple[str, ...]:
     return ("t0",) + tuple(f"tm{k}" for k in range(1, num_frames))
 
 
+# Which sweep an example's "tm1" slot (the partner of t0) holds: "previous", the sweep before t0 (WOD, own sequences:
+# the paper's pair), or "next", the sweep after it (Argoverse 2 challenge records, whose flow is scored from t0 to the
+# next sweep). The older slots tm2, tm3, ... hold t-1, t-2, ... with "next", t-2, t-3, ... with "previous".
+PARTNERS = ("previous", "next")
+
+
+def slots_newest_first(num_frames: int, partner: str) -> tuple[int, ...]:
+    """The slots of `sweep_clouds(num_frames)` (0 = t0, 1 = tm1, ...) ordered by the time of the sweep they hold,
+    newest first: with `partner` "previous" the slot order itself; with "next" the partner (slot 1, sweep t+1) first,
+    then t0 and the history."""
+    if partner not in PARTNERS:
+        raise ValueError(f"partner={partner!r}: one of {PARTNERS}")
+    slots = tuple(range(num_frames))
+    return slots if partner == "previous" else (1, 0) + slots[2:]
+
+
 def cloud_keys(cloud: str) -> dict:
     """The keys of one cloud of an example ("t0", "tm1", ...): xyz (vehicle frame at t0, m), features (intensity,
     elongation), mask (batched: real points), count (real points), pose (vehicle -> world at the sweep's time)."""

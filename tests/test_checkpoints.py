@@ -193,3 +193,31 @@ def test_a_mismatch_names_the_models_own_config(tiny_config, model_dir):
     with pytest.raises(CheckpointError) as e:
         restore_model(tiny_config, _ckpt(model_dir, 3))
     assert not e.value.mismatch and "own config" not in str(e.value)
+
+
+def test_a_model_of_another_definition_with_the_same_variables_is_refused(tiny_config, tmp_path):
+    """delta's U-Net input is C wide whatever the number of sweeps, so a delta model of 3 sweeps restores into one of
+    5 without a variable that differs: the saved config decides. Training over it and restoring it both stop naming
+    the config, the key and both values, and the saved config is not rewritten."""
+    def delta(num_frames):
+        return dataclasses.replace(tiny_config, data=dataclasses.replace(tiny_config.data, num_frames=num_frames),
+                                   model=dataclasses.replace(tiny_config.model, temporal="delta"))
+    model_dir = tmp_path / "delta3"
+    trainer = _trainer(delta(3), model_dir)
+    trainer.manager.save(checkpoint_number=1)
+    delta(3).save(str(model_dir / "config.yaml"))
+    saved = (model_dir / "config.yaml").read_text()
+    why = r"config.yaml is unusable: the model saved here is of another definition: data.num_frames=3 there, 5 here"
+    with pytest.raises(CheckpointError, match=why):
+        _trainer(delta(5), model_dir)
+    with pytest.raises(CheckpointError, match=why):
+        restore_model(delta(5), str(model_dir))
+    assert (model_dir / "config.yaml").read_text() == saved
+    # The same definition restores; a partner the config leaves unset is the saved model's.
+    assert restore_model(delta(3), str(model_dir)).partner == "previous"
+    nxt = dataclasses.replace(delta(3), data=dataclasses.replace(delta(3).data, partner="next"))
+    nxt.save(str(model_dir / "config.yaml"))
+    assert restore_model(delta(3), str(model_dir)).partner == "next"
+    with pytest.raises(CheckpointError, match="data.partner=next there, previous here"):
+        restore_model(dataclasses.replace(nxt, data=dataclasses.replace(nxt.data, partner="previous")),
+                      str(model_dir))

@@ -109,8 +109,8 @@ class Manifest:
         unknown = set(self.extras) - set(schema.PAIR_EXTRA_POINT_KEYS)
         if unknown:
             raise bad("extras", f"unknown keys {sorted(unknown)}; known: {schema.PAIR_EXTRA_POINT_KEYS}")
-        if self.partner not in ("previous", "next"):
-            raise bad("partner", f"{self.partner!r}: previous or next")
+        if self.partner not in schema.PARTNERS:
+            raise bad("partner", f"{self.partner!r}: one of {schema.PARTNERS}")
         if isinstance(self.num_frames, bool) or not isinstance(self.num_frames, int) or \
                 not 2 <= self.num_frames <= schema.MAX_NUM_FRAMES:
             raise bad("num_frames", f"{self.num_frames!r}: an integer in [2, {schema.MAX_NUM_FRAMES}]")

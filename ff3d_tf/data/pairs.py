@@ -20,7 +20,7 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import geometry, schema
-from ff3d_tf.config import ABLATED_CLASSES, ExperimentConfig
+from ff3d_tf.config import ABLATED_CLASSES, ConfigError, ExperimentConfig, partner_matters, replace_config
 from ff3d_tf.data import pair_records
 from ff3d_tf.data.wod import waymo
 from ff3d_tf.data.wod.wod_decode import DecodeOptions
@@ -271,11 +271,15 @@ def _pairs_of_records(path, cfg: ExperimentConfig, manifest, extras: tuple, meta
 def check_records_match(manifest, cfg: ExperimentConfig, where: str, inference_only: bool = False) -> None:
     """ConfigError unless pair records written as `manifest` can serve `cfg` (same lidars and returns, labels;
     `inference_only`: a predictor's input, for which unlabelled records serve)."""
-    from ff3d_tf.config import ConfigError
     d = cfg.data
     if manifest.num_frames != d.num_frames:
         raise ConfigError(f"{where}: the pair records hold {manifest.num_frames} sweeps per example; the config asks "
                           f"for data.num_frames={d.num_frames}: write records with that number, or change the config")
+    if d.partner is not None and manifest.partner != d.partner and partner_matters(cfg):
+        raise ConfigError(f"{where}: these pair records pair each sweep with the {manifest.partner} one (their "
+                          f"manifest's partner); the config asks for data.partner={d.partner}: a model learns the "
+                          "order of the sweeps it was trained on. Use records of that order, or leave data.partner "
+                          "unset to take the records'")
     if manifest.source == "wod" and (tuple(sorted(manifest.laser_names)), tuple(sorted(manifest.returns))) != \
             (tuple(sorted(d.laser_names)), tuple(sorted(d.returns))):
         raise ConfigError(f"{where}: the pair records hold lasers {manifest.laser_names}, returns "
@@ -287,6 +291,23 @@ def check_records_match(manifest, cfg: ExperimentConfig, where: str, inference_o
     if d.labels == "pseudo" and schema.PSEUDO_FLOW_KEY not in manifest.extras:
         raise ConfigError(f"{where}: data.labels=pseudo, but these records hold no pseudo-labels "
                           "(write them with tools/pseudo_label.py)")
+
+
+def with_data_partner(cfg: ExperimentConfig, files: list[str]) -> ExperimentConfig:
+    """`cfg` with `data.partner` resolved from the data it reads (`schema.PARTNERS`): the pair records' manifest, or
+    "previous" for WOD frames read on the fly. A value the config sets must match the records
+    (`check_records_match`)."""
+    if cfg.data.source != "pair_records":
+        partner = "previous"
+        if cfg.data.partner not in (None, partner) and partner_matters(cfg):
+            raise ConfigError(f"data.partner={cfg.data.partner} with data.source={cfg.data.source}: these frames "
+                              "pair each sweep with the previous one; next-sweep partners come with Argoverse 2 pair "
+                              "records")
+    else:
+        manifest = pair_records.manifest_of_files(list(files))
+        check_records_match(manifest, cfg, os.path.dirname(files[0]), inference_only=True)
+        partner = manifest.partner
+    return cfg if cfg.data.partner == partner else replace_config(cfg, {"data.partner": partner})
 
 
 def pair_dataset(files: list[str], cfg: ExperimentConfig, *, inference_only: bool = False,

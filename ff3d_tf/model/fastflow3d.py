@@ -30,7 +30,7 @@ import keras
 import tensorflow as tf
 
 from ff3d_tf import schema
-from ff3d_tf.config import TEMPORALS, ExperimentConfig
+from ff3d_tf.config import TEMPORALS, ExperimentConfig, partner_matters
 from ff3d_tf.model import compile as compile_lib
 from ff3d_tf.model import gru_head
 from ff3d_tf.model import layers as L
@@ -72,7 +72,7 @@ class FastFlow3D(keras.Model):
     def __init__(self, *, num_pillars_x, num_pillars_y, x_range_m, y_range_m, z_range_m, point_feature_dim,
                  encoder_widths, encoder_depths, decoder_dims, head_hidden_dim, zero_init_output=False,
                  plan=None, point_chunk_size=ops.POINT_CHUNK, head="paper", gru_iterations=4, num_frames=2,
-                 temporal="pair", temporal_decay=0.4, **kwargs):
+                 temporal="pair", temporal_decay=0.4, partner="previous", **kwargs):
         super().__init__(**kwargs)
         self.num_pillars_x, self.num_pillars_y = int(num_pillars_x), int(num_pillars_y)
         self.x_range_m, self.y_range_m, self.z_range_m = tuple(x_range_m), tuple(y_range_m), tuple(z_range_m)
@@ -93,6 +93,8 @@ class FastFlow3D(keras.Model):
                 (temporal == "pair" and self.num_frames != 2):
             raise ValueError(f"temporal={temporal!r} with num_frames={num_frames}: pair reads 2 sweeps, stack and "
                              f"delta 2 to {schema.MAX_NUM_FRAMES}")
+        self.partner = partner
+        self.slots_newest_first = schema.slots_newest_first(self.num_frames, partner)
         self.clouds = schema.sweep_clouds(self.num_frames)
         # The U-Net's branches: the sweeps it encodes with shared weights, stacked on the batch axis, whose layers
         # the decoder concatenates depth-wise (pair: the two clouds; stack: every sweep; delta: the one delta grid).
@@ -250,13 +252,15 @@ class FastFlow3D(keras.Model):
         return {"flow_mps": tf.where(valid_t0[..., None], flow, tf.zeros_like(flow)), "point_valid": valid_t0}
 
     def _unet_input(self, grids):
-        """The clouds' pillar sums (float32 [B,H,W,C] each, t0 first) -> the U-Net's input in `conv_dtype`: the
-        branches stacked on the batch axis, t0 first ([2B,H,W,C] for the pair, [N B,H,W,C] with stack), or with
-        delta DeltaFlow's decayed difference [B,H,W,C]: sum over k = 1..N-1 of decay^(k-1) (grid_t0 - grid_tm{k}),
-        divided by N - 1 (the authors' code weighs the nearest past sweep by decay^0 and divides by the count)."""
+        """The clouds' pillar sums (float32 [B,H,W,C] each, in slot order t0, tm1, ...) -> the U-Net's input in
+        `conv_dtype`: the branches stacked on the batch axis, t0 first ([2B,H,W,C] for the pair, [N B,H,W,C] with
+        stack), or with delta DeltaFlow's decayed difference [B,H,W,C] of the newest sweep's grid F_new and the
+        others' F_j ranked by recency, j = 0 the next newest (`slots_newest_first`: with partner "previous" the
+        newest is t0, with "next" the partner t+1): sum over j of decay^j (F_new - F_j), divided by N - 1."""
         if self.temporal != "delta":
             return tf.cast(tf.concat(grids, 0), self.conv_dtype)
-        delta = tf.add_n([self.temporal_decay ** (k - 1) * (grids[0] - grids[k]) for k in range(1, len(grids))])
+        newest, *older = self.slots_newest_first
+        delta = tf.add_n([self.temporal_decay ** j * (grids[newest] - grids[slot]) for j, slot in enumerate(older)])
         return tf.cast(delta / (len(grids) - 1), self.conv_dtype)
 
     def _gru_grids(self, bev, grid_t0):
@@ -434,7 +438,7 @@ class FastFlow3D(keras.Model):
                 "head_hidden_dim": self.head_hidden_dim, "zero_init_output": self.zero_init_output,
                 "plan": self.plan.to_dict(), "point_chunk_size": self.point_chunk_size, "head": self.head,
                 "gru_iterations": self.gru_iterations, "num_frames": self.num_frames, "temporal": self.temporal,
-                "temporal_decay": self.temporal_decay}
+                "temporal_decay": self.temporal_decay, "partner": self.partner}
 
 
 def _rematerialized_stage(stage: list, x):
@@ -467,7 +471,22 @@ def model_kwargs(cfg: ExperimentConfig) -> dict:
                 encoder_widths=m.encoder_widths, encoder_depths=m.encoder_depths, decoder_dims=m.decoder_dims,
                 head_hidden_dim=m.head_hidden_dim, zero_init_output=m.zero_init_output, head=m.head,
                 gru_iterations=m.gru_iterations, num_frames=cfg.data.num_frames, temporal=m.temporal,
-                temporal_decay=m.temporal_decay)
+                temporal_decay=m.temporal_decay, partner=cfg.data.partner or "previous")
+
+
+def model_definition(cfg: ExperimentConfig) -> dict:
+    """What a trained model computes beyond its variables' shapes, by config key: the keys whose change a checkpoint
+    restores into silently (delta's grid is C wide at any number of sweeps) but whose model computes something else.
+    The partner sweep's side only where it matters (`config.partner_matters`)."""
+    definition = {"data.num_frames": cfg.data.num_frames, "model.temporal": cfg.model.temporal,
+                  "model.head": cfg.model.head}
+    if cfg.model.temporal == "delta":
+        definition["model.temporal_decay"] = cfg.model.temporal_decay
+    if cfg.model.head == "gru":
+        definition["model.gru_iterations"] = cfg.model.gru_iterations
+    if partner_matters(cfg):
+        definition["data.partner"] = cfg.data.partner or "previous"
+    return definition
 
 
 def build_model(cfg: ExperimentConfig, compile_mode: str | None = None, point_chunk_size: int | None = None,

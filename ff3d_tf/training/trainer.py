@@ -33,7 +33,7 @@ import tensorflow as tf
 from ff3d_tf import cpu, internals
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import pairs
-from ff3d_tf.checkpoints import restore_newest_intact
+from ff3d_tf.checkpoints import restore_newest_intact, with_model_definition
 from ff3d_tf.model import build_model
 from ff3d_tf.model import plan as plan_lib
 from ff3d_tf.model import step as step_lib
@@ -91,8 +91,13 @@ class Trainer:
     def __init__(self, cfg: ExperimentConfig, model_dir: str, train_files: list[str], val_files: list[str] = (),
                  strategy: tf.distribute.Strategy | None = None, log_fn=print, data_service_address: str | None = None,
                  plan: plan_lib.ExecutionPlan | None = None):
-        self.cfg, self.model_dir = cfg, model_dir
         self.train_files, self.val_files = training_files(train_files, cfg), list(val_files)
+        # The sweep order the model learns (data.partner), from its data, saved with it; a model_dir that holds a
+        # model of another definition stops here, before anything is restored or written.
+        if self.train_files:
+            cfg = pairs.with_data_partner(cfg, self.train_files)
+        cfg = with_model_definition(cfg, model_dir)
+        self.cfg, self.model_dir = cfg, model_dir
         self.strategy = strategy or make_strategy(cfg.train.peer_timeout_s, cfg.train.peer_join_timeout_s)
         self._cluster = cluster_tasks(self.strategy)  # None for one process
         self.data_service_address = data_service_address

@@ -38,6 +38,36 @@ def test_delta_by_hand(tiny_config):
     np.testing.assert_allclose(three._unet_input([g0, g1, g2]).numpy().ravel(), [2.3, 0.0], atol=1e-6)
 
 
+def test_delta_by_hand_with_the_next_sweep_as_partner(tiny_config):
+    """Argoverse 2 records hold t0, t+1, t-1 (slots 0, 1, 2): the difference is taken from the newest sweep, t+1
+    (slot 1), the others ranked by recency (t0, then t-1). N = 3, decay 0.4: ((g1 - g0) + 0.4 (g1 - g2)) / 2."""
+    g0, g1, g2 = (tf.constant(np.array(v, np.float32).reshape(1, 1, 2, 1)) for v in ([5, 1], [2, 3], [1, -4]))
+    three = build_model(_config(tiny_config, "delta", 3, **{"model.temporal_decay": 0.4, "data.partner": "next"}),
+                        compile_mode="none")
+    # cell 0: ((2 - 5) + 0.4 (2 - 1)) / 2 = (-3 + 0.4) / 2 = -1.3; cell 1: ((3 - 1) + 0.4 (3 + 4)) / 2 = 4.8 / 2 = 2.4
+    np.testing.assert_allclose(three._unet_input([g0, g1, g2]).numpy().ravel(), [-1.3, 2.4], atol=1e-6)
+
+
+@pytest.mark.parametrize("partner", schema.PARTNERS)
+def test_delta_of_a_constant_velocity_object_points_one_way_whatever_the_partner(tiny_config, partner):
+    """One occupied cell per sweep on a 1 x 8 grid, the object one cell further (+x) each sweep, 5 sweeps. With either
+    partner the newest sweep's cell is the only positive one and the trail lies behind it, each older sweep's cell
+    weighted by the next power of the decay: every term of the sum points the same way (the authors' construction,
+    mirrored for no record direction). By hand, decay 0.4, sum divided by 4:
+    newest cell (1 + 0.4 + 0.16 + 0.064) / 4 = 0.406; then -1/4, -0.4/4, -0.16/4, -0.064/4 going back."""
+    times = {"previous": (0, -1, -2, -3, -4), "next": (0, 1, -1, -2, -3)}[partner]  # sweep time of slots 0..4
+    cell_of_newest = 4
+
+    def grid(time):
+        g = np.zeros((1, 1, 8, 1), np.float32)
+        g[0, 0, cell_of_newest + time - max(times), 0] = 1.0
+        return tf.constant(g)
+    model = build_model(_config(tiny_config, "delta", 5, **{"model.temporal_decay": 0.4, "data.partner": partner}),
+                        compile_mode="none")
+    delta = model._unet_input([grid(t) for t in times]).numpy().ravel()
+    np.testing.assert_allclose(delta, [-0.016, -0.04, -0.1, -0.25, 0.406, 0, 0, 0], atol=1e-6)
+
+
 @pytest.mark.parametrize("head", ["paper", "gru"])
 def test_stack_of_two_sweeps_is_the_pair(tiny_config, head):
     pair = build_model(replace_config(tiny_config, {"model.head": head}), compile_mode="none")
