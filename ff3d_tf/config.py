@@ -114,8 +114,12 @@ class DataConfig:
     # records: with this probability both clouds move by one z offset drawn uniformly from the range (m) ...
     augment_height_offset_prob: float = 0.0
     augment_height_offset_m: tuple[float, float] = (-0.5, 0.5)
-    # ... and with this probability each of x and y is mirrored (both clouds and the flow alike).
+    # ... and with this probability each of x and y is mirrored (both clouds and the flow alike) ...
     augment_flip_prob: float = 0.0
+    # ... and every point of every cloud moves by a normal draw of this standard deviation per axis (m; 0: none),
+    # clipped to +-augment_jitter_clip_m.
+    augment_jitter_sigma_m: float = 0.0
+    augment_jitter_clip_m: float = 0.05
 
     def validate(self) -> None:
         if self.source not in DATA_SOURCES:
@@ -150,15 +154,19 @@ class DataConfig:
             value = getattr(self, name)
             if not (_is_number(value) and 0.0 <= value <= 1.0):
                 raise ConfigError(f"data.{name}={value!r}: a probability, must be in [0, 1]")
+        for name in ("augment_jitter_sigma_m", "augment_jitter_clip_m"):
+            value = getattr(self, name)
+            if not (_is_number(value) and value >= 0.0):
+                raise ConfigError(f"data.{name}={value!r}: a distance in m, must be >= 0")
         lo_hi = self.augment_height_offset_m
         if not (len(lo_hi) == 2 and all(_is_number(v) for v in lo_hi) and lo_hi[0] <= lo_hi[1]):
             raise ConfigError(f"data.augment_height_offset_m={list(lo_hi)}: must be [lo, hi] in m with lo <= hi")
 
 
 COMPILE_MODES = ("auto", "xla", "hybrid", "none")  # model.compile
-HEADS = ("paper", "gru")  # model.head
+HEADS = ("paper", "gru", "mlp")  # model.head (`ff3d_tf.model.heads.HEADS`)
 FORWARDS = ("fused", "table")  # model.forward
-TEMPORALS = ("pair", "stack", "delta")  # model.temporal
+TEMPORALS = ("pair", "stack", "delta")  # model.temporal (`ff3d_tf.model.fusions.FUSIONS`)
 LOSSES = ("l2", "deflow", "deltaflow")  # train.loss
 
 
@@ -173,7 +181,8 @@ class ModelConfig:
     decoder_dims: tuple[tuple[int, int], ...] = ((128, 128), (128, 64), (64, 64))
     head_hidden_dim: int = 32  # row Y
     # The per-point head: paper = rows W-Z (the paper's table); gru = DeFlow's GRU point decoder (Zhang et al., ICRA
-    # 2024), `gru_iterations` refinement steps (0: an MLP on the point's encoding and its pillar's features).
+    # 2024), `gru_iterations` refinement steps (0: an MLP on the point's encoding and its pillar's features); mlp =
+    # DeltaFlow's point head (Linear-BN-ReLU-Linear on the cell embedding and the point feature, head_hidden_dim wide).
     head: str = "paper"
     gru_iterations: int = 4
     # Training recomputes the encoder stages' activations (rows C-R) in the backward pass from each stage's input
@@ -183,11 +192,11 @@ class ModelConfig:
     # (`ff3d_tf.model.plan`); table = every row as the paper's table lists it, one call per row (reading, debugging).
     # Both compute the same values up to float rounding.
     forward: str = "fused"
-    # How the sweeps of an example (data.num_frames) meet in the U-Net (`ff3d_tf.model.fastflow3d`): pair = the
+    # How the sweeps of an example (data.num_frames) meet in the U-Net (`ff3d_tf.model.fusions`): pair = the
     # paper's two clouds (num_frames 2); stack = every sweep through the shared encoder, the decoder's skips
-    # concatenating all of them (the pair's concatenation extended, as DeFlow++ stacks sweeps); delta = DeltaFlow's
-    # decayed differences of the pillar grids, sum over past sweep k of temporal_decay^(k-1) (F(t0) - F(t-k)),
-    # divided by num_frames - 1, the only input of the U-Net (Zhang et al., arXiv 2508.17054).
+    # concatenating all of them (the pair's concatenation extended, as DeFlow++ does); delta = DeltaFlow's decayed
+    # differences of the sweeps' pillar means, from the newest sweep to the others ranked by recency, weighted by
+    # temporal_decay^rank and divided by num_frames - 1, the only input of the U-Net (Zhang et al., arXiv 2508.17054).
     temporal: str = "pair"
     temporal_decay: float = 0.4
     # Zeros for row Z's kernel (the model starts at the zero-flow prediction) instead of the paper's Glorot init:

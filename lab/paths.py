@@ -8,6 +8,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the checko
 # realpath: under Bazel this module is a link into the checkout, and benchmarks/ is not among a target's runfiles.
 BENCHMARKS_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.realpath(__file__))), "benchmarks")
 TOOLS_DIR = os.path.join(ROOT, "tools")  # the product's tools (train.py, eval.py, ...)
+LAB_TOOLS_DIR = os.path.join(ROOT, "lab", "tools")  # the lab's own (benchmark_*.py, run_planted.py, ...)
 
 
 def benchmark_file(name: str) -> str:

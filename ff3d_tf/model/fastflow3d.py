@@ -9,13 +9,13 @@ Outputs (dict): flow_mps [B,N0,3] (m/s, vehicle frame at t0; 0 where invalid), p
 
 Both clouds share the point encoder (A) and the convolutional encoder (C-R): the two frames are stacked along the
 batch axis and pass through the same layers once. The decoder (S, T, U, V) takes the depth-wise concatenation of the
-two encoders' layers (t0 first), and the head (W-Z) regresses flow for the t0 points. `head="gru"` replaces rows
-W-Z with DeFlow's GRU point decoder (`ff3d_tf.model.gru_head.GRUHead`, Zhang et al., ICRA 2024).
+two encoders' layers (t0 first), and the head (W-Z) regresses flow for the t0 points. Other heads replace rows W-Z
+(`head`, `ff3d_tf.model.heads`: DeFlow's GRU point decoder, DeltaFlow's point MLP).
 
-More sweeps (`temporal`, `model.temporal` in `ff3d_tf.config`): every sweep shares rows A and B; `stack` passes every
-sweep through the encoder and the decoder concatenates all of them (the pair's concatenation extended; the pair is
-`stack` with 2 sweeps); `delta` feeds the U-Net DeltaFlow's decayed difference of the pillar grids alone
-(`FastFlow3D._unet_input`), so its width stays C whatever the number of sweeps.
+More sweeps (`temporal`, `model.temporal` in `ff3d_tf.config`; `ff3d_tf.model.fusions`): every sweep shares rows A
+and B; `stack` passes every sweep through the encoder and the decoder concatenates all of them (the pair's
+concatenation extended; the pair is `stack` with 2 sweeps); `delta` feeds the U-Net DeltaFlow's decayed difference of
+the pillar grids alone, so its width stays C whatever the number of sweeps.
 
 Precision: the dense stages (rows C-V) compute in the execution plan's precision (`ff3d_tf.model.plan`: bfloat16 for
 `model.mixed_precision` resolved to it, see `ff3d_tf.model.compile`); the point stages (rows A, B, W-Z: coordinates,
@@ -30,9 +30,9 @@ import keras
 import tensorflow as tf
 
 from ff3d_tf import schema
-from ff3d_tf.config import TEMPORALS, ExperimentConfig, partner_matters
+from ff3d_tf.config import ExperimentConfig, partner_matters
 from ff3d_tf.model import compile as compile_lib
-from ff3d_tf.model import gru_head
+from ff3d_tf.model import fusions, heads
 from ff3d_tf.model import layers as L
 from ff3d_tf.model import ops
 from ff3d_tf.model import plan as plan_lib
@@ -61,11 +61,11 @@ class FastFlow3D(keras.Model):
     stages are float32 layers in every precision.
     `point_chunk_size`: points (over the flattened batch) that the point encoder encodes and scatters at a time, and
     that the GRU head decodes at a time.
-    `head`: "paper" (rows W-Z: `head_y`, `head_z`) or "gru" (`head_gru`: DeFlow's GRU point decoder, its hidden state
-    the point's pillar embedding of both clouds and the decoder's output there, 3C wide; its input the offset from the
-    pillar centre encoded to C values; `gru_iterations` steps; an MLP of `head_hidden_dim` hidden units to the flow).
-    `num_frames`, `temporal`, `temporal_decay`: the sweeps read and how they meet in the U-Net (module docstring,
-    `model.temporal` in `ff3d_tf.config`).
+    `head`: the per-point head's unit (`ff3d_tf.model.heads.HEADS`): "paper" (rows W-Z: `head_y`, `head_z`), "gru"
+    (`head_gru`: DeFlow's GRU point decoder, `gru_iterations` steps, an MLP of `head_hidden_dim` hidden units to the
+    flow) or "mlp" (`head_mlp`: DeltaFlow's point head, `head_hidden_dim` wide).
+    `num_frames`, `temporal`, `temporal_decay`, `partner`: the sweeps read, how they meet in the U-Net
+    (`ff3d_tf.model.fusions.FUSIONS`) and which side of t0 the partner sweep lies on (`schema.PARTNERS`).
     """
 
     # Keyword-only, the paper's values without defaults: they live in `ff3d_tf.config` alone (`model_kwargs`).
@@ -85,20 +85,23 @@ class FastFlow3D(keras.Model):
         self.plan = plan_lib.ExecutionPlan.from_dict(plan) if isinstance(plan, dict) else (
             plan or plan_lib.ExecutionPlan())
         self.point_chunk_size = int(point_chunk_size)
-        if head not in ("paper", "gru"):
-            raise ValueError(f"head={head!r}: paper or gru")
+        if head not in heads.HEADS:
+            raise ValueError(f"head={head!r}: one of {', '.join(heads.HEADS)}")
         self.head, self.gru_iterations = head, int(gru_iterations)
+        self.head_unit = heads.HEADS[head]
         self.num_frames, self.temporal, self.temporal_decay = int(num_frames), temporal, float(temporal_decay)
-        if temporal not in TEMPORALS or not 2 <= self.num_frames <= schema.MAX_NUM_FRAMES or \
-                (temporal == "pair" and self.num_frames != 2):
-            raise ValueError(f"temporal={temporal!r} with num_frames={num_frames}: pair reads 2 sweeps, stack and "
-                             f"delta 2 to {schema.MAX_NUM_FRAMES}")
+        if temporal not in fusions.FUSIONS or not (fusions.FUSIONS[temporal].frames[0] <= self.num_frames <=
+                                                   fusions.FUSIONS[temporal].frames[1]):
+            raise ValueError(f"temporal={temporal!r} with num_frames={num_frames}: "
+                             + ", ".join(f"{f.name} reads {f.frames[0]} to {f.frames[1]} sweeps"
+                                         for f in fusions.FUSIONS.values()))
+        self.fusion = fusions.FUSIONS[temporal]
         self.partner = partner
         self.slots_newest_first = schema.slots_newest_first(self.num_frames, partner)
         self.clouds = schema.sweep_clouds(self.num_frames)
         # The U-Net's branches: the sweeps it encodes with shared weights, stacked on the batch axis, whose layers
         # the decoder concatenates depth-wise (pair: the two clouds; stack: every sweep; delta: the one delta grid).
-        self.branches = {"pair": 2, "stack": self.num_frames, "delta": 1}[temporal]
+        self.branches = self.fusion.branches(self.num_frames)
 
         # The point stages in float32 under any global policy: pillar indices and offsets (a bfloat16 x would move
         # points across pillars), the point encoder and its pillar sums, and the head. XLA's CPU backend has no
@@ -115,15 +118,7 @@ class FastFlow3D(keras.Model):
             self._make_dense_stages()
         finally:
             keras.config.set_dtype_policy(previous)
-        if self.head == "paper":
-            self.head_y = L.UngridHead(self.head_hidden_dim, grid_channels=self.decoder_dims[-1][0],
-                                       point_channels=self.point_feature_dim, name="Y", dtype="float32")
-            self.head_z = keras.layers.Dense(3, kernel_initializer="zeros" if self.zero_init_output else
-                                             "glorot_uniform", name="Z", dtype="float32")
-        else:
-            self.head_gru = gru_head.GRUHead(
-                input_units=self.point_feature_dim, mlp_units=self.head_hidden_dim, iterations=self.gru_iterations,
-                chunk_size=self.point_chunk_size, zero_init_output=self.zero_init_output, name="gru", dtype="float32")
+        self.head_unit.make_layers(self)  # rows W-Z, or another head's layers (`ff3d_tf.model.heads`)
 
     def _make_dense_stages(self):
         """Rows C-V, each convolution told the plan's forms (`layers.Conv2D`, `layers.ConvBlock`)."""
@@ -181,12 +176,7 @@ class FastFlow3D(keras.Model):
             block.build((x_shape, both(skip)))
             x_shape = both(skip)[:-1] + (block.depth,)
         self.conv_v.build(x_shape)
-        if self.head == "paper":
-            self.head_y.build((None, None, self.conv_v.filters + c + 8))
-            self.head_z.build((None, None, self.head_hidden_dim))
-        else:  # hidden state: the pillar grids `_gru_grids` gives (two, or every sweep's with stack), row V's output
-            grids = self.num_frames if self.temporal == "stack" else 2
-            self.head_gru.build([(None, h, w, c)] * grids + [(None, h, w, self.conv_v.filters)])
+        self.head_unit.build(self, [(None, h, w, c)] * self.fusion.head_grid_count(self.num_frames))
         self.built = True
 
     def call(self, inputs, training=False, inline_stages=False):
@@ -205,26 +195,24 @@ class FastFlow3D(keras.Model):
             return forward(inputs, training)
         encoded = compile_lib.hybrid_encode(self.encode_points, inputs, training, self.plan.point_programs)
         grid = self.grid_stages(encoded["bev_features"], training)
-        return compile_lib.xla_function(self.decode_points)(grid, encoded)
+        return compile_lib.xla_function(lambda g, e: self.decode_points(g, e, training))(grid, encoded)
 
     # -- the table forward -------------------------------------------------------------------------------------------
 
     def table_forward(self, inputs, training=False):
         """The paper's table, row by row: the model inputs (module docstring) -> flow_mps [B,N0,3] (0 where invalid),
         point_valid [B,N0]. Every convolution as the table lists it, whatever the plan's forms."""
-        keys = [schema.cloud_keys(cloud) for cloud in self.clouds]  # t0, t-1 (and older sweeps), newest first
-        xyz_t0 = inputs["points_xyz_t0"]
+        keys = [schema.cloud_keys(cloud) for cloud in self.clouds]  # t0, tm1 (and older sweeps), in slot order
         # Pillarize (the input of rows A and B): the 8-D encoding, the flat pillar id and validity of every point.
         encodings, ids, valid = zip(*[self.pillarize(inputs[k["xyz"]], inputs[k["features"]],
                                                      tf.cast(inputs[k["mask"]], tf.bool)) for k in keys])
         encoding_t0, ids_t0, valid_t0 = encodings[0], ids[0], valid[0]
         # A: per-point features [B,N,C] of every cloud (shared weights, one set of BN statistics).
         features = self.point_encoder.point_features(list(encodings), list(valid), training=training)
-        features_t0 = features[0]
-        # B: Snap-To-Grid, the pillar sums [B,H,W,C] of each cloud; the U-Net's input of them (`_unet_input`): with
-        # the pair, both clouds stacked on the batch axis, t0 first [2B,H,W,C].
+        # B: Snap-To-Grid, the pillar sums [B,H,W,C] of each cloud; the U-Net's input of them (the fusion's,
+        # `ff3d_tf.model.fusions`): with the pair, both clouds stacked on the batch axis, t0 first [2B,H,W,C].
         grids = [ops.pillar_sums(f, i, self.num_pillars_y, self.num_pillars_x) for f, i in zip(features, ids)]
-        bev = self._unet_input(grids)
+        bev, extra = self.fusion.encode(self, grids, ids, valid, for_head=self.head_unit.reads_pillar_grids)
         # C-R: three encoder stages of ConvBlocks (3x3 convolution, BatchNorm, ReLU); the first of each has stride 2.
         x, skips = bev, [bev]
         for stage in self.encoder_stages:
@@ -240,43 +228,12 @@ class FastFlow3D(keras.Model):
         x = upsample_u([x, both(skips[0])])
         # V: 3x3 convolution, the flow embedding of every cell [B,H,W,C_V].
         v = self.conv_v(x)
-        if self.head == "gru":  # W and DeFlow's GRU decoder in place of X-Z
-            point_rows_t0 = self.pillarize.point_rows(xyz_t0, inputs["point_features_t0"])
-            return self._gru_flow(self._gru_grids(bev, grids[0]), v, point_rows_t0, ids_t0, valid_t0)
-        # W: Ungrid, each t0 point takes its pillar's cell embedding [B,N0,C_V].
-        cell_t0 = L.UngridHead.ungrid(tf.cast(v, tf.float32), ids_t0)
-        # X: concatenation with the point's feature (row A) and its 8-D encoding [B,N0,C_V + C + 8].
-        x = tf.concat([cell_t0, features_t0, encoding_t0], -1)
-        # Y: linear to head_hidden_dim; Z: linear to the flow (m/s).
-        flow = self.head_z(self.head_y(x))
+        # W-Z: the head (the paper's rows, or another head's layers: `ff3d_tf.model.heads`).
+        t0 = {"features": features[0], "encoding": encoding_t0, "pillar_ids": ids_t0, "point_valid": valid_t0,
+              "point_rows": self.pillarize.point_rows(inputs["points_xyz_t0"], inputs["point_features_t0"])}
+        head_grids = self.fusion.head_grids(self, bev, extra) if self.head_unit.reads_pillar_grids else []
+        flow = self.head_unit.table(self, v, t0, head_grids, training)
         return {"flow_mps": tf.where(valid_t0[..., None], flow, tf.zeros_like(flow)), "point_valid": valid_t0}
-
-    def _unet_input(self, grids):
-        """The clouds' pillar sums (float32 [B,H,W,C] each, in slot order t0, tm1, ...) -> the U-Net's input in
-        `conv_dtype`: the branches stacked on the batch axis, t0 first ([2B,H,W,C] for the pair, [N B,H,W,C] with
-        stack), or with delta DeltaFlow's decayed difference [B,H,W,C] of the newest sweep's grid F_new and the
-        others' F_j ranked by recency, j = 0 the next newest (`slots_newest_first`: with partner "previous" the
-        newest is t0, with "next" the partner t+1): sum over j of decay^j (F_new - F_j), divided by N - 1."""
-        if self.temporal != "delta":
-            return tf.cast(tf.concat(grids, 0), self.conv_dtype)
-        newest, *older = self.slots_newest_first
-        delta = tf.add_n([self.temporal_decay ** j * (grids[newest] - grids[slot]) for j, slot in enumerate(older)])
-        return tf.cast(delta / (len(grids) - 1), self.conv_dtype)
-
-    def _gru_grids(self, bev, grid_t0):
-        """The pillar grids of the GRU head's hidden state (before row V's output), in `conv_dtype`: the U-Net's
-        branches (`bev`: the pair's two clouds, or every sweep with stack), or with delta the t0 cloud's pillar sums
-        `grid_t0` and the delta grid `bev`."""
-        if self.temporal == "delta":
-            return [tf.cast(grid_t0, self.conv_dtype), bev]
-        return tf.split(bev, self.branches, axis=0)
-
-    def _gru_flow(self, pillar_grids, grid, point_rows_t0, pillar_ids_t0, point_valid_t0):
-        """DeFlow's GRU head (`gru_head.GRUHead.decode`) on the pillar grids (`_gru_grids`), row V's output and each
-        t0 point's offset from its pillar centre (from `Pillarize.point_rows`)."""
-        flow = self.head_gru.decode([*pillar_grids, grid], point_rows_t0, pillar_ids_t0, point_valid_t0,
-                                    encode=self._point_offsets)
-        return {"flow_mps": flow, "point_valid": point_valid_t0}
 
     def _branches_concat(self, t):
         """[S B,h,w,c] (the U-Net's S branches on the batch axis, t0 first) -> [B,h,w,S c], the branches' layers
@@ -288,7 +245,7 @@ class FastFlow3D(keras.Model):
     def fused_forward(self, inputs, training=False):
         """The table's values in the plan's forms: `encode_points`, `grid_stages`, `decode_points`."""
         encoded = self.encode_points(inputs, training)
-        return self.decode_points(self.grid_stages(encoded["bev_features"], training), encoded)
+        return self.decode_points(self.grid_stages(encoded["bev_features"], training), encoded, training)
 
     def encode_points(self, inputs, training=False, stage=None):
         """Rows A and B on both clouds (shared weights, one set of BN statistics over both), and the part of the head
@@ -310,20 +267,15 @@ class FastFlow3D(keras.Model):
         ids, valid = zip(*[(stage or (lambda f: f))(self.pillarize.cells)(*cloud) for cloud in clouds])
         ids_t0, valid_t0 = ids[0], valid[0]
         point_rows = [self.pillarize.point_rows(xyz, features) for xyz, features, _ in clouds]
-        head_point_kernel = None
-        if self.head == "paper":
-            _, k_point, k_encoding, _ = self.head_y.composed_with(self.head_z)
-            head_point_kernel = tf.concat([k_point, k_encoding], 0)  # [C + 8, 3]: (point feature, encoding) -> flow
         # The point encoder encodes each chunk of points itself (`Pillarize.encode`): no [N, 8] encoding is stored.
-        grids, (point_flow_t0, *_) = self.point_encoder(
-            point_rows, list(valid), list(ids), point_projections=(head_point_kernel,) + (None,) * (len(ids) - 1),
+        # The head's share of each t0 point's (feature, encoding), if it takes one, is computed there too.
+        grids, (projected_t0, *_) = self.point_encoder(
+            point_rows, list(valid), list(ids),
+            point_projections=(self.head_unit.point_projection(self),) + (None,) * (len(ids) - 1),
             encode=self.pillarize.encode, training=training, stage=stage)
-        bev = self._unet_input(grids)
-        head_inputs = ({"point_flow_t0": tf.cast(point_flow_t0, tf.float32)} if self.head == "paper" else
-                       {"point_rows_t0": point_rows[0]})
-        if self.head == "gru" and self.temporal == "delta":  # the head's hidden state also reads the t0 grid
-            head_inputs["grid_t0"] = tf.cast(grids[0], self.conv_dtype)
-        return {"bev_features": bev, **head_inputs, "pillar_ids_t0": ids_t0, "point_valid_t0": valid_t0}
+        bev, extra = self.fusion.encode(self, grids, ids, valid, for_head=self.head_unit.reads_pillar_grids)
+        return {"bev_features": bev, **self.head_unit.encoded(self, projected_t0, point_rows[0]), **extra,
+                "pillar_ids_t0": ids_t0, "point_valid_t0": valid_t0}
 
     def dense_stages(self, bev_features, training=False):
         """Rows C-V: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> grid flow
@@ -331,35 +283,10 @@ class FastFlow3D(keras.Model):
         return self.conv_v(self.unet(bev_features, training))
 
     def grid_stages(self, bev_features, training=False):
-        """What the fused forward computes on the grid from bev_features [2B,H,W,C]: with the GRU head, rows C-V
-        (`dense_stages`); with the paper head, the head's grid part on each cell, cell_flow [B,H,W,3] float32 (m/s;
-        without the points' own share and the bias, `decode_points`).
-
-        `plan.v_with_head`: row V (a 3x3 convolution) and the head's grid part (`UngridHead.composed_with`: a linear
-        map of V's 64 channels to 3 for every cell) are both linear with nothing between them, so they are one 3x3
-        convolution to 3 channels whose kernel is V's composed with the head's: row V's arithmetic for 3 output
-        channels instead of 64, forward and backward (the gradients of every kernel follow from the composed one's).
-        It runs in float32 under every precision, as the head always has.
-
-        `plan.decoder_chain`: row U's U5 and U6 (3x3 convolutions, linear with nothing between them and V either) join
-        that convolution: row U's merged input to the 3 channels in one pass (`ops.conv_chain_same`: the three kernels
-        composed into one 7x7 kernel, a matrix product to its 147 taps and shifted sums, the cells near the border by
-        the chain itself), a fraction of the three convolutions' arithmetic."""
-        if self.head == "gru":
-            return self.dense_stages(bev_features, training)
-        k_grid = self.head_y.composed_with(self.head_z)[0]
-        if not self.plan.v_with_head:
-            return ops.dense_last_axis(tf.cast(self.dense_stages(bev_features, training), tf.float32), k_grid)
-        with tf.name_scope(self.conv_v.name):
-            kernel_v = tf.cast(self.conv_v.kernel, tf.float32)  # [3, 3, C_U, C_V]
-            kernel = ops.dense_last_axis(kernel_v, tf.cast(k_grid, tf.float32))  # [3, 3, C_U, 3]
-        if not self.plan.decoder_chain:
-            return tf.nn.conv2d(tf.cast(self.unet(bev_features, training), tf.float32), kernel, 1, "SAME")
-        last = self.upsample_skips[-1]
-        u4 = self.unet(bev_features, training, merged_last=True)
-        with tf.name_scope(self.conv_v.name):
-            return ops.conv_chain_same(u4, [tf.cast(last.u5.kernel, tf.float32),
-                                            tf.cast(last.u6.kernel, tf.float32), kernel])
+        """What the fused forward computes on the grid from bev_features [branches B,H,W,C]: the head's
+        (`Head.grid_stages`): rows C-V (`dense_stages`), or with the paper head its grid part on each cell, cell_flow
+        [B,H,W,3] float32 (m/s; without the points' own share and the bias), row V composed with it by the plan."""
+        return self.head_unit.grid_stages(self, bev_features, training)
 
     def unet(self, bev_features, training=False, merged_last=False):
         """Rows C-U: bev_features [2B,H,W,C] (t0 samples first; any float dtype, cast to `conv_dtype`) -> row U's
@@ -394,41 +321,29 @@ class FastFlow3D(keras.Model):
             u4 = u.merged([None, both(skips[0])], u1=u1_of_u)
             return u4 if merged_last else u.u6(u.u5(u4))
 
-    def decode_points(self, grid, encoded):
+    def decode_points(self, grid, encoded, training=False):
         """Rows W-Z: flow of the t0 points. `grid` is `grid_stages`' output and `encoded` `encode_points`' dict;
-        returns flow_mps [B,N0,3] (0 where invalid) and point_valid [B,N0]. With the paper head, `grid` is the head's
-        grid part applied on the grid (3 values per cell); each point takes its cell's (row W) and adds its own part
-        (`point_flow_t0`) and the bias.
-
-        With the GRU head: each point's hidden state starts at its pillar's cells of the two clouds' pillar embeddings
-        (`bev_features`, before the U-Net) and of `grid` (rows C-V), concatenated; its input is its offset from
-        the pillar centre (channels 3-5 of `Pillarize.encode`, computed chunk by chunk from `point_rows_t0`). The
-        grids enter in their own dtype (bfloat16 under mixed precision), one chunk of points at a time cast to the
-        head's float32."""
+        returns flow_mps [B,N0,3] (0 where invalid) and point_valid [B,N0] (`Head.decode`; the head's state reads
+        the fusion's pillar grids where it reads any)."""
         valid = encoded["point_valid_t0"]
-        if self.head == "gru":
-            return self._gru_flow(self._gru_grids(encoded["bev_features"], encoded.get("grid_t0")), grid,
-                                  encoded["point_rows_t0"], encoded["pillar_ids_t0"], valid)
-        bias = self.head_y.composed_with(self.head_z)[3]
-        flow = self.head_y.ungrid(grid, encoded["pillar_ids_t0"]) + encoded["point_flow_t0"] + bias
+        head_grids = (self.fusion.head_grids(self, encoded["bev_features"], encoded)
+                      if self.head_unit.reads_pillar_grids else [])
+        flow = self.head_unit.decode(self, grid, encoded, head_grids, training)
         flow = tf.where(valid[..., None], flow, tf.zeros_like(flow))
         return {"flow_mps": flow, "point_valid": valid}
 
-    def _point_offsets(self, point_rows, point_valid):
+    def point_offsets(self, point_rows, point_valid):
         """[P,3]: (dx, dy, dz) in metres from the pillar centre, channels 3-5 of the encoding of `point_rows` [P,5]
         (`Pillarize.encode`), 0 where `point_valid` [P] is False."""
         return self.pillarize.encode(point_rows, point_valid)[:, 3:6]
 
     def table_rows(self) -> list[tuple[str, int]]:
-        """(row, parameter count) in the order of the paper's table (with the GRU head: rows A-W, then the head's
-        layers, `GRUHead.table_rows`)."""
+        """(row, parameter count) in the order of the paper's table (another head: rows A-W, then the head's layers,
+        `Head.table_rows`)."""
         rows = [("A", self.point_encoder.count_params()), ("B", 0)]
         rows += [(b.name, b.count_params()) for stage in self.encoder_stages for b in stage]
         rows += [(u.name, u.count_params()) for u in self.upsample_skips]
-        rows += [("V", self.conv_v.count_params()), ("W", 0)]
-        if self.head == "gru":  # W: each point takes its pillar's cells; then DeFlow's GRU decoder
-            return rows + self.head_gru.table_rows()
-        return rows + [("X", 0), ("Y", self.head_y.count_params()), ("Z", self.head_z.count_params())]
+        return rows + [("V", self.conv_v.count_params()), ("W", 0)] + self.head_unit.table_rows(self)
 
     def get_config(self):
         return {**super().get_config(), "num_pillars_x": self.num_pillars_x, "num_pillars_y": self.num_pillars_y,

@@ -29,6 +29,15 @@ def pillar_sums(point_features, pillar_ids, num_pillars_y: int, num_pillars_x: i
     return tf.reshape(sums[:cells], [batch, num_pillars_y, num_pillars_x, channels])
 
 
+def pillar_means(grid_sums, pillar_ids, point_valid):
+    """Row B's pillar sums [B,H,W,C] of a cloud divided by each pillar's count of valid points (`point_valid` [B,N],
+    `pillar_ids` [B,N] flat over the batch as `pillar_sums` takes them): the pillar means, 0 in an empty pillar."""
+    batch, rows, columns = tf.shape(grid_sums)[0], grid_sums.shape[1], grid_sums.shape[2]
+    ids = tf.where(point_valid, pillar_ids, batch * rows * columns)
+    counts = pillar_sums(tf.cast(point_valid, grid_sums.dtype)[..., None], ids, rows, columns)
+    return grid_sums / tf.maximum(counts, 1.0)
+
+
 def dense_last_axis(x, kernel):
     """x [..., C] @ kernel [C, U] as one 2-D matmul (no tensordot transposes: inside the point-chunk loop those
     need compile-time shapes under XLA)."""

@@ -37,6 +37,7 @@ import os
 
 from ff3d_tf.config import FORWARDS, ModelConfig
 from ff3d_tf.model import compile as compile_lib
+from ff3d_tf.model import heads
 
 POINT_PROGRAMS = ("per_cloud", "one")
 # The fields that choose a cheaper form of the table's arithmetic (the table forward has every one of them off).
@@ -133,12 +134,12 @@ def resolve(model: ModelConfig, job: str = "inference", compile_mode: str | None
                            "memory to train (docs/benchmarks.md, bfloat16 on a CPU)")
     if model.forward == "table":
         return ExecutionPlan.table(mode, precision), why
-    paper = model.head == "paper"
+    composes = heads.HEADS[model.head].composes_with_v  # the head's first layer is linear in row V's output
     on_cpu = (device_type or compile_lib.accelerator_type()) == "CPU"
     plan = ExecutionPlan(
         compile_mode=mode, precision=precision, forward="fused", matmul_1x1=True,
-        stride2_phase_gradients=mode == "xla" and on_cpu, u6_into_next_u1=True, v_with_head=paper,
-        decoder_chain=paper and precision == "float32" and (job == "inference" or mode == "xla"),
+        stride2_phase_gradients=mode == "xla" and on_cpu, u6_into_next_u1=True, v_with_head=composes,
+        decoder_chain=composes and precision == "float32" and (job == "inference" or mode == "xla"),
         point_programs="per_cloud", remat_encoder=bool(model.remat_encoder), fold_batch_norm=False)
     return plan, why
 

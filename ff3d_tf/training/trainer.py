@@ -31,7 +31,7 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import cpu, internals
-from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.config import ConfigError, ExperimentConfig
 from ff3d_tf.data import pairs
 from ff3d_tf.checkpoints import restore_newest_intact, with_model_definition
 from ff3d_tf.model import build_model
@@ -284,8 +284,11 @@ class Trainer:
 
         Multi-worker: an error a lost peer causes becomes `PeerLostError`; nothing of the failed step is saved."""
         if self._cluster is None:
-            with pairs.input_errors_named(self.train_files, self._decode_options):  # stops before any update
-                loss = self.step(iterator)
+            try:
+                with pairs.input_errors_named(self.train_files, self._decode_options):  # stops before any update
+                    loss = self.step(iterator)
+            except tf.errors.OutOfRangeError:
+                raise self._no_batch(step) from None
             return float(loss.numpy()), None
         t0 = time.monotonic()
         if watchdog is not None:
@@ -295,6 +298,8 @@ class Trainer:
                 loss, stop_by = self._step_and_stop(iterator, tf.constant(self._stop_request(), tf.float64))
                 loss_value, stop_by = float(loss.numpy()), int(round(float(stop_by.numpy())))
             self._after_step()
+        except tf.errors.OutOfRangeError:
+            raise self._no_batch(step) from None
         except tf.errors.OpError as e:
             if not is_peer_error(e):
                 raise
@@ -303,6 +308,14 @@ class Trainer:
             if watchdog is not None:
                 watchdog.disarm()
         return loss_value, (tasks_in_stop_mask(stop_by, self._cluster[1]) if stop_by else None)
+
+    def _no_batch(self, step: int) -> ConfigError:
+        """The error of a training input that ends (it repeats, so it never had a whole batch)."""
+        history = (f"; with data.num_frames={self.cfg.data.num_frames} only examples whose every past slot holds its "
+                   f"own sweep train (a log's first {self.cfg.data.num_frames - 2} examples read its first sweep "
+                   "instead)") if self.cfg.data.num_frames > 2 else ""
+        return ConfigError(f"the training input gave no batch at step {step}: the {len(self.train_files)} training "
+                           f"files hold no example it can train on{history}")
 
     def train(self, num_steps: int | None = None) -> dict:
         """Runs (or resumes) training to `num_steps`: restore, input, steps with logging, checkpoints and the

@@ -302,8 +302,8 @@ def step_parts(cfg, mode: str, labelled: dict, plan_changes: dict | None = None)
 
     def decode(grid, encoded):
         if mode == "hybrid":
-            return compile_lib.xla_function(model.decode_points)(grid, encoded)
-        return model.decode_points(grid, encoded)
+            return compile_lib.xla_function(lambda g, e: model.decode_points(g, e, True))(grid, encoded)
+        return model.decode_points(grid, encoded, True)
 
     encoded0 = tf.function(encode, jit_compile=xla)(inputs)
     grid0 = tf.function(lambda b: model.grid_stages(b, True), jit_compile=xla)(encoded0["bev_features"])

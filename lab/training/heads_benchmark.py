@@ -95,9 +95,11 @@ class Options:
                 "set": self.config_sets(), "variants": {k: list(v) for k, v in VARIANTS.items()}}
 
 
-def generate_stages(options, fmt: str, data: str, tools_dir: str = TOOLS_DIR) -> list[Stage]:
+def generate_stages(options, fmt: str, data: str, tools_dir: str = TOOLS_DIR,
+                    generator_flags: tuple[str, ...] = ()) -> list[Stage]:
     """The synthetic data of both splits (`SPLIT_SEEDS`) in format `fmt` under `data`/<split>, sized by `options`
-    (its train_segments, eval_segments, frames_per_segment, lidar_scale and av2_points_per_sweep)."""
+    (its train_segments, eval_segments, frames_per_segment, lidar_scale and av2_points_per_sweep), with the
+    generator's further `generator_flags`."""
     counts = {"train": options.train_segments, "eval": options.eval_segments}
     stages = []
     for split, seed in SPLIT_SEEDS.items():
@@ -108,7 +110,8 @@ def generate_stages(options, fmt: str, data: str, tools_dir: str = TOOLS_DIR) ->
             size = ["--format", "av2", "--split", split, "--num_logs", str(counts[split]), "--sweeps_per_log",
                     str(options.frames_per_segment), "--points_per_sweep", str(options.av2_points_per_sweep)]
         stages.append(Stage(f"generate_{fmt}_{split}", [os.path.join(tools_dir, "make_synthetic_data.py"),
-                                                        "--out_dir", f"{data}/{split}", "--seed", str(seed), *size],
+                                                        "--out_dir", f"{data}/{split}", "--seed", str(seed), *size,
+                                                        *generator_flags],
                             [f"{data}/{split}"]))
     return stages
 

@@ -1,19 +1,32 @@
 """Multi-sweep models against the pair, over several seeds, the job of `lab/tools/benchmark_sweeps.py`: the paper's
-model on 2 sweeps, DeFlow's GRU head with DeltaFlow's loss on 2 sweeps, and on 3 and 5 sweeps (`model.temporal`
-stack and delta), each trained with every seed of `Options.seeds` on the same synthetic records and scored on
-held-out records (other logs, another generator seed) beside zero flow; the spread over the seeds beside each mean.
+model on 2 sweeps, DeFlow's GRU head with DeltaFlow's loss on 2 sweeps and `stack` of 3, DeltaFlow's point head and
+loss with `delta` of 3 and 5 sweeps, and a planted defect, `delta_5_reversed` (the difference taken from t0 whatever
+the records' direction, `lab.training.planted_defects`), each trained with every seed of `Options.seeds` on the same
+synthetic examples and scored on held-out ones (other logs, another generator seed) beside zero flow; the spread over
+the seeds beside each mean.
+
+Every variant trains and is scored on the same t0 sweeps: those whose every past slot holds its own sweep for the
+variant of the most sweeps ("full", the log's t0 sweeps from rank `Options.history_rank()` on, rank counted among the
+log's t0 sweeps), whatever the variant reads; the held-out t0 sweeps before that rank ("filled": the longer variants'
+history stands in from the log's first sweep there) are scored apart. Logs of `Options.frames_per_segment` sweeps
+(40 by default) make the filled share small, as in real logs.
 
 Stages (`stage_plan`), each one of the project's tools as a subprocess run by `ff3d_tf.stages` (resumable), for each
 data format of `Options.formats`:
-1. synthetic data, training and held-out (`tools/make_synthetic_data.py`, the splits' seeds of `SPLIT_SEEDS`);
+1. synthetic data, training and held-out (`tools/make_synthetic_data.py`, the splits' seeds of `SPLIT_SEEDS`; with
+   `Options.realistic`, its sensor model);
 2. pair records of both splits for each number of sweeps the variants read (`tools/write_pair_records.py --set
-   data.num_frames=N`: a record of N sweeps holds its past sweeps);
-3. each variant trained with each seed (`tools/train.py`, `train.seed`), same config, steps and records;
-4. each evaluated on the held-out records (`tools/eval.py`; `--protocol av2` for AV2), beside zero flow.
-`run` gathers the figures (`format_summary`: per variant the mean, sample standard deviation, minimum and maximum
-over the seeds of each headline figure of `heads_benchmark.HEADLINE_KEYS`; and whether zero flow, the paper's model
-and the best other variant are apart by more than the seeds' spread on each of `SEPARATION_FIGURES`, `separations`),
-writes one JSON and logs `table`.
+   data.num_frames=N`: a record of N sweeps holds its past sweeps), then their full and filled parts
+   (`lab/tools/benchmark_sweeps.py --subset`, `subset_records`);
+3. each variant trained with each seed on the full part (`tools/train.py`, `train.seed`), same config and steps; the
+   planted variant through `lab/tools/run_planted.py`;
+4. each evaluated on the held-out full and filled parts (`tools/eval.py`; `--protocol av2` for AV2), beside zero
+   flow.
+`run` gathers the figures (`format_summary`: per variant and part the mean, sample standard deviation, minimum and
+maximum over the seeds of each headline figure of `heads_benchmark.HEADLINE_KEYS`; whether zero flow, the paper's
+model and the best other variant are apart by more than the seeds' spread on each of `SEPARATION_FIGURES`; and
+whether the planted defect comes out worse than the corrected variant beyond that spread, `instrument`), writes one
+JSON and logs `table`.
 """
 from __future__ import annotations
 
@@ -23,8 +36,11 @@ import statistics
 import time
 from typing import Callable
 
+import tensorflow as tf
+
 from ff3d_tf import cpu
-from lab.paths import ROOT, TOOLS_DIR
+from ff3d_tf.data import pair_records
+from lab.paths import LAB_TOOLS_DIR, ROOT, TOOLS_DIR
 from lab.training.distillation_benchmark import Stage, print_line, run_stages, write_json
 from lab.training.heads_benchmark import FORMATS, HEADLINE_KEYS, SPLIT_SEEDS, eval_metrics, generate_stages, headline
 
@@ -33,17 +49,25 @@ from lab.training.heads_benchmark import FORMATS, HEADLINE_KEYS, SPLIT_SEEDS, ev
 # bound and the trainer stopped on non-finite steps), with the clip and without. The paper's model keeps the config's
 # rate.
 GRU_DELTAFLOW = ("model.head=gru", "train.loss=deltaflow", "train.grad_clip_norm=5.0", "train.learning_rate=5e-4")
-# {variant: (sweeps, its config overrides)}: the issue's five rows.
+# DeltaFlow's point head and loss (configs/deltaflow_av2.yaml's head), with the GRU variants' clip and rate.
+MLP_DELTAFLOW = ("model.head=mlp", "train.loss=deltaflow", "train.grad_clip_norm=5.0", "train.learning_rate=5e-4")
+PLANTED = "delta_5_reversed"  # the planted defect, and the variant it must come out worse than
+CORRECTED = "delta_5"
+# {variant: (sweeps, its config overrides)}
 VARIANTS = {
     "paper_pair": (2, ("model.head=paper", "train.loss=l2")),
     "gru_deltaflow_pair": (2, GRU_DELTAFLOW),
     "stack_3": (3, GRU_DELTAFLOW + ("model.temporal=stack",)),
-    "delta_3": (3, GRU_DELTAFLOW + ("model.temporal=delta",)),
-    "delta_5": (5, GRU_DELTAFLOW + ("model.temporal=delta",)),
+    "delta_3": (3, MLP_DELTAFLOW + ("model.temporal=delta",)),
+    CORRECTED: (5, MLP_DELTAFLOW + ("model.temporal=delta",)),
+    PLANTED: (5, MLP_DELTAFLOW + ("model.temporal=delta_reversed",)),
 }
 VARIANT_NAMES = {"paper_pair": "paper model, 2 sweeps", "gru_deltaflow_pair": "GRU + DeltaFlow loss, 2 sweeps",
-                 "stack_3": "GRU + DeltaFlow loss, stack of 3", "delta_3": "GRU + DeltaFlow loss, delta of 3",
-                 "delta_5": "GRU + DeltaFlow loss, delta of 5", "zero_flow": "zero flow"}
+                 "stack_3": "GRU + DeltaFlow loss, stack of 3", "delta_3": "DeltaFlow head and loss, delta of 3",
+                 CORRECTED: "DeltaFlow head and loss, delta of 5",
+                 PLANTED: "planted defect: delta of 5 reversed", "zero_flow": "zero flow"}
+REALISTIC_FLAGS = ("--realistic",)  # tools/make_synthetic_data.py: the sensor model
+PARTS = ("full", "filled")  # the held-out t0 sweeps with every variant's own history, and those before
 TABLE_COLUMNS = ("moving_mps", "stationary_mps", "three_way_mean_epe_m", "bucketed_dynamic_norm_epe")
 # The figures whose means the separations compare: the paper's error on moving points (m/s), and the mean dynamic
 # bucketed normalized EPE the Argoverse 2 board ranks by (no unit). Each has its own best variant.
@@ -64,6 +88,7 @@ class Options:
     lidar_scale: float
     av2_points_per_sweep: int
     variants: tuple[str, ...] = tuple(VARIANTS)
+    realistic: bool = False  # the generator's sensor model (`tools/make_synthetic_data.py --realistic`)
 
     def config_sets(self) -> list[str]:
         return ["data.point_bucket_base=8192", "data.source=pair_records", f"train.num_steps={self.steps}",
@@ -72,6 +97,11 @@ class Options:
     def sweeps(self) -> list[int]:
         """The numbers of sweeps the variants read, ascending (one set of records each)."""
         return sorted({VARIANTS[v][0] for v in self.variants})
+
+    def history_rank(self) -> int:
+        """The first rank (among a log's t0 sweeps) whose every past slot holds its own sweep for every variant: the
+        most sweeps read, less t0 and its partner."""
+        return max(self.sweeps()) - 2
 
     def as_json(self) -> dict:
         return {**dataclasses.asdict(self), "sets": list(self.sets), "seeds": list(self.seeds),
@@ -96,32 +126,76 @@ def stage_plan(options: Options, out_dir: str, tools_dir: str = TOOLS_DIR) -> li
     def flags(sets):
         return [a for s in sets for a in ("--set", s)]
 
+    def run_tool(variant, name):  # the planted variant runs the tools with the lab's planted fusions registered
+        return [os.path.join(LAB_TOOLS_DIR, "run_planted.py"), tool(name)] if variant == PLANTED else [tool(name)]
+
+    rank = options.history_rank()
     plan = []
     for fmt in options.formats:
         data = f"{out_dir}/{fmt}/data"
-        plan += generate_stages(options, fmt, data, tools_dir)
+        plan += generate_stages(options, fmt, data, tools_dir, REALISTIC_FLAGS if options.realistic else ())
         for sweeps in options.sweeps():
             temporal = [] if sweeps == 2 else ["model.temporal=delta"]  # records hold sweeps, whatever the model
+            records = f"{out_dir}/{fmt}/records_{sweeps}"
             plan += [Stage(f"records_{fmt}_{split}_{sweeps}",
                            [tool("write_pair_records.py"), "--source", fmt, "--config", options.config,
                             *flags([f"data.num_frames={sweeps}", *temporal]), "--input",
                             f"{data}/{split}" + (f"/{split}" if fmt == "av2" else ""), "--out_dir",
-                            f"{out_dir}/{fmt}/records_{sweeps}/{split}"],
-                           [f"{out_dir}/{fmt}/records_{sweeps}/{split}"]) for split in SPLIT_SEEDS]
+                            f"{records}/{split}"],
+                           [f"{records}/{split}"]) for split in SPLIT_SEEDS]
+            plan += [Stage(f"subset_{fmt}_{split}_{part}_{sweeps}",
+                           [os.path.join(LAB_TOOLS_DIR, "benchmark_sweeps.py"), "--subset", f"{records}/{split}",
+                            f"{records}/{split}_{part}", f"{part}:{rank}"], [f"{records}/{split}_{part}"])
+                     for split, part in (("train", "full"), ("eval", "full"), ("eval", "filled"))]
         protocol = ["--protocol", "av2"] if fmt == "av2" else []
         for variant in options.variants:
             records = f"{out_dir}/{fmt}/records_{VARIANTS[variant][0]}"
             for seed in options.seeds:
                 run_dir = f"{out_dir}/{fmt}/{variant}/seed_{seed}"
                 sets = flags([*variant_sets(variant), f"train.seed={seed}"])
-                plan.append(Stage(f"train_{fmt}_{variant}_{seed}", [tool("train.py"), *config, *sets, "--data_dir",
-                                                                    f"{records}/train", "--model_dir",
-                                                                    f"{run_dir}/model"], [f"{run_dir}/model"]))
-                plan.append(Stage(f"eval_{fmt}_{variant}_{seed}",
-                                  [tool("eval.py"), *config, *sets, *protocol, "--data_dir", f"{records}/eval",
-                                   "--checkpoint", f"{run_dir}/model", "--out_dir", f"{run_dir}/eval"],
-                                  [f"{run_dir}/eval"]))
+                plan.append(Stage(f"train_{fmt}_{variant}_{seed}",
+                                  [*run_tool(variant, "train.py"), *config, *sets, "--data_dir",
+                                   f"{records}/train_full", "--model_dir", f"{run_dir}/model"], [f"{run_dir}/model"]))
+                plan += [Stage(f"eval_{fmt}_{variant}_{seed}_{part}",
+                               [*run_tool(variant, "eval.py"), *config, *sets, *protocol, "--data_dir",
+                                f"{records}/eval_{part}", "--checkpoint", f"{run_dir}/model", "--out_dir",
+                                f"{run_dir}/eval_{part}"], [f"{run_dir}/eval_{part}"]) for part in PARTS]
     return plan
+
+
+def _t0_keys(path: str, compression: str) -> list[tuple[str, int]]:
+    """(sequence id, t0 timestamp ns) of every record of one pair-records file, in file order (scalars only)."""
+    spec = {pair_records.SEQUENCE_KEY: tf.io.FixedLenFeature([], tf.string),
+            pair_records.TIMESTAMP_KEY: tf.io.FixedLenFeature([], tf.int64)}
+    ds = tf.data.TFRecordDataset(path, compression_type="ZLIB" if compression == "zlib" else "")
+    return [(f[pair_records.SEQUENCE_KEY].decode(), int(f[pair_records.TIMESTAMP_KEY]))
+            for f in ds.map(lambda r: tf.io.parse_single_example(r, spec)).as_numpy_iterator()]
+
+
+def subset_records(source: str, target: str, part: str, rank: int) -> dict:
+    """Copies into `target` (with `source`'s manifest) the records of `source` whose t0 sweep has, among its log's t0
+    sweeps ordered by time, a rank >= `rank` (`part` "full") or < `rank` ("filled"); the records' bytes unchanged.
+    Returns {"kept": n, "of": n}."""
+    if part not in PARTS:
+        raise ValueError(f"part {part!r}: one of {PARTS}")
+    manifest = pair_records.read_manifest(source)
+    files = sorted(f for f in os.listdir(source) if f.endswith(pair_records.FILE_SUFFIX))
+    keys = {f: _t0_keys(os.path.join(source, f), manifest.compression) for f in files}
+    by_log: dict = {}
+    for log_id, t0_ns in (k for ks in keys.values() for k in ks):
+        by_log.setdefault(log_id, []).append(t0_ns)
+    ranks = {(log_id, t): i for log_id, stamps in by_log.items() for i, t in enumerate(sorted(stamps))}
+    os.makedirs(target, exist_ok=True)
+    kept = 0
+    for f in files:
+        wanted = [(ranks[k] >= rank) == (part == "full") for k in keys[f]]
+        raw = tf.data.TFRecordDataset(os.path.join(source, f),
+                                      compression_type="ZLIB" if manifest.compression == "zlib" else "")
+        kept += pair_records.write_records_atomically(
+            os.path.join(target, f), (r for r, keep in zip(raw.as_numpy_iterator(), wanted) if keep),
+            manifest.compression)
+    pair_records.write_manifest(target, manifest)
+    return {"kept": kept, "of": sum(len(k) for k in keys.values())}
 
 
 def spread(values: list) -> dict:
@@ -163,33 +237,61 @@ def format_summary(per_seed: dict, zero_flow: dict) -> dict:
             "separations": separations, "per_seed": per_seed, "zero_flow_headline": zero_flow}
 
 
+def instrument(rows: dict) -> dict:
+    """Whether the planted defect (`PLANTED`) comes out worse than the corrected variant (`CORRECTED`) beyond the seeds'
+    spread, on each of `SEPARATION_FIGURES` (lower is better on each): `apart`'s figures and `planted_worse`."""
+    if PLANTED not in rows or CORRECTED not in rows:
+        return {}
+    out = {}
+    for figure in SEPARATION_FIGURES:
+        planted, corrected = rows[PLANTED][figure], rows[CORRECTED][figure]
+        versus = apart(planted, corrected)
+        worse = planted["mean"] is not None and corrected["mean"] is not None and planted["mean"] > corrected["mean"]
+        out[figure] = {**versus, "planted_worse": bool(worse), "caught": bool(worse and versus["apart"])}
+    return out
+
+
+def format_result(per_seed: dict, zero_flow: dict, per_seed_filled: dict | None = None,
+                  zero_flow_filled: dict | None = None) -> dict:
+    """One format's result: the full part's `format_summary` with its `instrument`, and the filled part's summary
+    (`filled`) where the run scored one."""
+    out = format_summary(per_seed, zero_flow)
+    out["instrument"] = instrument(out["per_variant"])
+    if per_seed_filled is not None:
+        out["filled"] = format_summary(per_seed_filled, zero_flow_filled)
+    return out
+
+
 def summarize_again(result: dict, command: str) -> dict:
-    """`result` (a JSON `run` wrote) with each format's summary made again by this code's `format_summary` from the
+    """`result` (a JSON `run` wrote) with each format's summary made again by this code's `format_result` from the
     per-seed figures it holds; `command` is recorded beside the run's own."""
-    formats = {fmt: format_summary(part["per_seed"], part["zero_flow_headline"])
+    formats = {fmt: format_result(part["per_seed"], part["zero_flow_headline"],
+                                  part["filled"]["per_seed"] if "filled" in part else None,
+                                  part["filled"]["zero_flow_headline"] if "filled" in part else None)
                for fmt, part in result["formats"].items()}
     return {**result, "formats": formats, "summarized_again_by": command}
 
 
 def read_format(options: Options, out_dir: str, fmt: str) -> dict:
-    """`format_summary` of what the stages of format `fmt` wrote under `out_dir`."""
-    per_seed, zero = {}, None
-    for variant in options.variants:
-        per_seed[variant] = []
-        for seed in options.seeds:
-            model, zero_metrics = eval_metrics(f"{out_dir}/{fmt}/{variant}/seed_{seed}/eval", fmt)
-            per_seed[variant].append(headline(model, fmt))
-            zero = zero or headline(zero_metrics, fmt)
-    return format_summary(per_seed, zero)
+    """`format_result` of what the stages of format `fmt` wrote under `out_dir`."""
+    per_seed, zero = {part: {} for part in PARTS}, {}
+    for part in PARTS:
+        for variant in options.variants:
+            per_seed[part][variant] = []
+            for seed in options.seeds:
+                model, zero_metrics = eval_metrics(f"{out_dir}/{fmt}/{variant}/seed_{seed}/eval_{part}", fmt)
+                per_seed[part][variant].append(headline(model, fmt))
+                zero[part] = zero.get(part) or headline(zero_metrics, fmt)
+    return format_result(per_seed["full"], zero["full"], per_seed["filled"], zero["filled"])
 
 
 def records_bytes(out_dir: str, options: Options) -> dict:
     """{format: {sweeps: bytes of the training records of that many sweeps}}: every number of sweeps has the same
-    examples (a log's first sweeps included, their history clamped), so the ratios are those of one record."""
+    examples (the full part of each), so the ratios are those of one record."""
     def size(directory):
         return sum(os.path.getsize(os.path.join(directory, f)) for f in os.listdir(directory)
                    if f.endswith(".tfrecord"))
-    return {fmt: {str(n): size(f"{out_dir}/{fmt}/records_{n}/train") for n in options.sweeps()}
+    return {fmt: {str(n): size(f"{out_dir}/{fmt}/records_{n}/train_full") for n in options.sweeps()}
             for fmt in options.formats}
 
 
@@ -202,9 +304,12 @@ def table(result: dict) -> list[str]:
     lines = ["| data | model | moving (m/s) | stationary (m/s) | three-way mean EPE (m) | bucketed dynamic "
              "(normalized) |", "|---|---|" + "---:|" * len(TABLE_COLUMNS)]
     for fmt, part in result["formats"].items():
-        rows = {**part["per_variant"], "zero_flow": part["zero_flow"]}
-        lines += [f"| {fmt} | {VARIANT_NAMES[v]} | " + " | ".join(cell(r[c]) for c in TABLE_COLUMNS) + " |"
-                  for v, r in rows.items()]
+        for label, summary in ((fmt, part), (f"{fmt}, filled history", part.get("filled"))):
+            if summary is None:
+                continue
+            rows = {**summary["per_variant"], "zero_flow": summary["zero_flow"]}
+            lines += [f"| {label} | {VARIANT_NAMES[v]} | " + " | ".join(cell(r[c]) for c in TABLE_COLUMNS) + " |"
+                      for v, r in rows.items()]
     return lines
 
 
@@ -216,9 +321,12 @@ def run(options: Options, out_dir: str, json_path: str, command: str, tools_dir:
     plan = stage_plan(options, out_dir, tools_dir)
     stages = run_stages(plan, out_dir, log)
     result = {
-        "what": "models of 2, 3 and 5 sweeps (model.temporal pair, stack, delta) trained with several seeds on the "
-                "same synthetic records, scored on held-out synthetic records beside zero flow (tools/eval.py; mean, "
-                "sample standard deviation, min and max over the seeds; m/s for *_mps, m for *_epe_m)",
+        "what": "models of 2, 3 and 5 sweeps (model.temporal pair, stack, delta) and a planted defect (delta of 5 "
+                "reversed) trained with several seeds on the same synthetic t0 sweeps, scored on held-out ones beside "
+                "zero flow (tools/eval.py; mean, sample standard deviation, min and max over the seeds; m/s for "
+                "*_mps, m for *_epe_m); the held-out t0 sweeps whose history the longest variants fill from the log's "
+                "first sweep under 'filled'; whether the planted defect comes out worse beyond the spread under "
+                "'instrument'",
         "command": command,
         "formats": {fmt: read_format(options, out_dir, fmt) for fmt in options.formats},
         "training_records_bytes": records_bytes(out_dir, options),
@@ -235,4 +343,4 @@ def run(options: Options, out_dir: str, json_path: str, command: str, tools_dir:
     return result
 
 
-__all__ = ["FORMATS", "Options", "VARIANTS", "run", "stage_plan", "table"]
+__all__ = ["FORMATS", "Options", "PARTS", "VARIANTS", "run", "stage_plan", "subset_records", "table"]

@@ -8,6 +8,7 @@ from ff3d_tf.config import replace_config
 from ff3d_tf.data import augment
 
 DT_S = 0.1
+ULP_20M = 4e-6  # float32 rounding of a coordinate up to 20 m (2 ulp), in an offset read back as a difference
 
 
 def _rigid_pair(seed=0, n=50):
@@ -82,6 +83,28 @@ def test_a_seed_fixes_the_draw_and_probability_zero_changes_nothing(tiny_config)
         out = _numpy(augment.augment_example(ex, tiny_config.data, s))
         for k in out:
             np.testing.assert_array_equal(out[k], ex[k].numpy())
+
+
+def test_jitter_moves_each_point_by_its_own_clipped_draw_and_leaves_the_flow(tiny_config):
+    """sigma 0.01 m, clip 0.05 m (the authors' RandomJitter defaults): per-axis offsets with a standard deviation
+    near sigma over 4,000 draws (sample sd of N(0, 0.01^2) is within 5% of 0.01 with overwhelming probability), none
+    beyond the clip; each cloud gets its own draw; flows unchanged; the same seed the same offsets."""
+    cfg = replace_config(tiny_config, {"data.augment_jitter_sigma_m": 0.01, "data.augment_jitter_clip_m": 0.05})
+    assert augment.is_enabled(cfg.data)
+    ex = _rigid_pair(n=2000)
+    seed = tf.constant([3, 4], tf.int64)
+    out = _numpy(augment.augment_example(ex, cfg.data, seed))
+    moved = {k: out[k] - ex[k].numpy() for k in ("points_xyz_t0", "points_xyz_tm1_in_t0")}
+    for offsets in moved.values():
+        assert np.abs(offsets).max() <= 0.05 + ULP_20M
+        assert abs(offsets.std() - 0.01) < 0.0005
+    assert not np.allclose(moved["points_xyz_t0"], moved["points_xyz_tm1_in_t0"])
+    np.testing.assert_array_equal(out["flow_mps_t0"], ex["flow_mps_t0"].numpy())
+    again = _numpy(augment.augment_example(ex, cfg.data, seed))
+    np.testing.assert_array_equal(again["points_xyz_t0"], out["points_xyz_t0"])
+    tight = replace_config(cfg, {"data.augment_jitter_clip_m": 0.005})
+    assert np.abs(_numpy(augment.augment_example(ex, tight.data, seed))["points_xyz_t0"] -
+                  ex["points_xyz_t0"].numpy()).max() <= 0.005 + ULP_20M
 
 
 def test_the_training_input_augments_reproducibly(tiny_segment, tiny_config):

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
-from ff3d_tf.config import replace_config
+from ff3d_tf.config import HEADS, replace_config
+from ff3d_tf.model import heads
 from ff3d_tf.model import build_model
 from ff3d_tf.model.plan import FORM_FIELDS, ExecutionPlan, resolve
 
@@ -71,6 +72,11 @@ def _assert_same(got, want, variables, what):
     np.testing.assert_allclose(got[0], want[0], rtol=1e-4, atol=1e-4 * np.abs(want[0]).max(), err_msg=f"{what}: flow")
     assert np.abs(want[0]).max() > 1e-3, what
     for g, w, v in zip(got[1:], want[1:], variables):
+        if v.path.endswith("mlp/hidden_bias") and "inference" not in what:
+            # A bias right before a BatchNorm on the batch's statistics cancels in training: its gradient is 0, and
+            # both forwards give float rounding of 0 (about 1e-6 here), which no relative tolerance compares.
+            assert max(np.abs(g).max(), np.abs(w).max()) < 1e-4, f"{what}: {v.path}"
+            continue
         np.testing.assert_allclose(g, w, atol=2e-4 * np.abs(w).max() + 1e-7, err_msg=f"{what}: {v.path}")
 
 
@@ -84,12 +90,11 @@ def _one_form(name):
 
 EVERY_FORM = ExecutionPlan(compile_mode="none", matmul_1x1=True, stride2_phase_gradients=True,
                            u6_into_next_u1=True, v_with_head=True, decoder_chain=True, remat_encoder=True)
-PAPER_ONLY = ("v_with_head", "decoder_chain")
+COMPOSING_ONLY = ("v_with_head", "decoder_chain")  # forms of a head whose first layer composes with row V
 
 
-@pytest.mark.parametrize("head,each_form", [
-    ("paper", False), ("gru", False),
-    pytest.param("paper", True, marks=pytest.mark.slow), pytest.param("gru", True, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("head,each_form", [(head, False) for head in HEADS] +
+                         [pytest.param(head, True, marks=pytest.mark.slow) for head in HEADS])
 def test_each_form_computes_the_table_in_training(tiny_config, head, each_form):
     """Training (BatchNorm on the batch's statistics, remat_encoder's recomputation): every form together, and in
     make test-slow each form alone, against the table: the flow and every weight's gradient, eagerly and as one XLA
@@ -98,10 +103,11 @@ def test_each_form_computes_the_table_in_training(tiny_config, head, each_form):
     cfg = replace_config(tiny_config, {"model.head": head, "model.gru_iterations": 1})
     table = _table_model(cfg)
     want = {how: _flow_and_gradients(table, _inputs(), True, how) for how in ("eager", "xla")}
-    forms = [f for f in FORM_FIELDS if f != "fold_batch_norm" and not (head == "gru" and f in PAPER_ONLY)]
+    composes = heads.HEADS[head].composes_with_v
+    forms = [f for f in FORM_FIELDS if f != "fold_batch_norm" and (composes or f not in COMPOSING_ONLY)]
     for form in ["all"] + (forms if each_form else []):
         plan = EVERY_FORM if form == "all" else _one_form(form)
-        if head == "gru":  # the GRU head reads row V's channels themselves: no form of the paper head's rows V-Z
+        if not composes:  # the head reads row V's channels themselves: no form of the paper head's rows V-Z
             plan = plan.replace(v_with_head=False, decoder_chain=False)
         fused = _fused_model(cfg, plan, table)
         for how in ("eager", "xla"):
@@ -109,7 +115,7 @@ def test_each_form_computes_the_table_in_training(tiny_config, head, each_form):
                          f"{head}/{form}/{how}")
 
 
-@pytest.mark.parametrize("head", ["paper", "gru"])
+@pytest.mark.parametrize("head", HEADS)
 def test_folded_batch_norm_and_every_inference_form_compute_the_table(tiny_config, head):
     """Inference (moving statistics): the inference plan's forms with the BatchNorm folded into each ConvBlock,
     eagerly and as one XLA program."""

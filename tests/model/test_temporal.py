@@ -6,7 +6,7 @@ import pytest
 import tensorflow as tf
 
 from ff3d_tf import schema
-from ff3d_tf.config import replace_config
+from ff3d_tf.config import HEADS, replace_config
 from ff3d_tf.model.fastflow3d import build_model
 
 VARIANTS = (("stack", 3), ("delta", 3), ("delta", 5))
@@ -27,15 +27,25 @@ def _inputs(num_frames, seed=0, n=200):
     return out
 
 
+def _delta(model, grids, points_per_cell=1):
+    """The delta fusion's U-Net input of pillar sums on 1 x 1 x W grids of one channel, each cell holding
+    `points_per_cell` valid points (so its mean is its sum divided by that)."""
+    cells = grids[0].shape[2]
+    ids = tf.constant(np.repeat(np.arange(cells, dtype=np.int32), points_per_cell)[None])
+    valid = tf.ones_like(ids, tf.bool)
+    bev, _ = model.fusion.encode(model, grids, [ids] * len(grids), [valid] * len(grids), for_head=False)
+    return bev.numpy().ravel()
+
+
 def test_delta_by_hand(tiny_config):
-    """`_unet_input` on 1 x 1 x 2 grids of one channel. N = 2: the one term, grid_t0 - grid_tm1 (decay^0, divided by
+    """The delta fusion's input on 1 x 1 x 2 grids of one channel, one point a cell (means = sums). N = 2: the one term, grid_t0 - grid_tm1 (decay^0, divided by
     1). N = 3, decay 0.4: ((g0 - g1) + 0.4 (g0 - g2)) / 2."""
     g0, g1, g2 = (tf.constant(np.array(v, np.float32).reshape(1, 1, 2, 1)) for v in ([5, 1], [2, 3], [1, -4]))
     two = build_model(_config(tiny_config, "delta", 2), compile_mode="none")
-    np.testing.assert_allclose(two._unet_input([g0, g1]).numpy().ravel(), [3, -2])  # 5 - 2, 1 - 3
+    np.testing.assert_allclose(_delta(two, [g0, g1]), [3, -2])  # 5 - 2, 1 - 3
     three = build_model(_config(tiny_config, "delta", 3, **{"model.temporal_decay": 0.4}), compile_mode="none")
     # cell 0: ((5 - 2) + 0.4 (5 - 1)) / 2 = (3 + 1.6) / 2 = 2.3; cell 1: ((1 - 3) + 0.4 (1 + 4)) / 2 = 0 / 2 = 0
-    np.testing.assert_allclose(three._unet_input([g0, g1, g2]).numpy().ravel(), [2.3, 0.0], atol=1e-6)
+    np.testing.assert_allclose(_delta(three, [g0, g1, g2]), [2.3, 0.0], atol=1e-6)
 
 
 def test_delta_by_hand_with_the_next_sweep_as_partner(tiny_config):
@@ -45,7 +55,22 @@ def test_delta_by_hand_with_the_next_sweep_as_partner(tiny_config):
     three = build_model(_config(tiny_config, "delta", 3, **{"model.temporal_decay": 0.4, "data.partner": "next"}),
                         compile_mode="none")
     # cell 0: ((2 - 5) + 0.4 (2 - 1)) / 2 = (-3 + 0.4) / 2 = -1.3; cell 1: ((3 - 1) + 0.4 (3 + 4)) / 2 = 4.8 / 2 = 2.4
-    np.testing.assert_allclose(three._unet_input([g0, g1, g2]).numpy().ravel(), [-1.3, 2.4], atol=1e-6)
+    np.testing.assert_allclose(_delta(three, [g0, g1, g2]), [-1.3, 2.4], atol=1e-6)
+
+
+def test_delta_differences_pillar_means(tiny_config):
+    """Each sweep's grid enters as its pillar means (sums over the valid points' count): two points a cell halve the
+    difference of the same sums, and a pillar that gains a point but keeps its mean differs by nothing."""
+    g0, g1 = (tf.constant(np.array(v, np.float32).reshape(1, 1, 2, 1)) for v in ([5, 1], [2, 3]))
+    two = build_model(_config(tiny_config, "delta", 2), compile_mode="none")
+    np.testing.assert_allclose(_delta(two, [g0, g1], points_per_cell=2), [1.5, -1.0])  # (5 - 2) / 2, (1 - 3) / 2
+    # Cell 0: 1 point of feature 4 at t0, 2 points of feature 4 (sum 8) at t-1: means 4 and 4, difference 0.
+    ids_t0, ids_tm1 = tf.constant([[0]]), tf.constant([[0, 0]])
+    sums_t0 = tf.constant(np.array([4, 0], np.float32).reshape(1, 1, 2, 1))
+    sums_tm1 = tf.constant(np.array([8, 0], np.float32).reshape(1, 1, 2, 1))
+    bev, _ = two.fusion.encode(two, [sums_t0, sums_tm1], [ids_t0, ids_tm1],
+                               [tf.ones_like(ids_t0, tf.bool), tf.ones_like(ids_tm1, tf.bool)], for_head=False)
+    np.testing.assert_allclose(bev.numpy().ravel(), [0, 0])
 
 
 @pytest.mark.parametrize("partner", schema.PARTNERS)
@@ -64,11 +89,11 @@ def test_delta_of_a_constant_velocity_object_points_one_way_whatever_the_partner
         return tf.constant(g)
     model = build_model(_config(tiny_config, "delta", 5, **{"model.temporal_decay": 0.4, "data.partner": partner}),
                         compile_mode="none")
-    delta = model._unet_input([grid(t) for t in times]).numpy().ravel()
+    delta = _delta(model, [grid(t) for t in times])
     np.testing.assert_allclose(delta, [-0.016, -0.04, -0.1, -0.25, 0.406, 0, 0, 0], atol=1e-6)
 
 
-@pytest.mark.parametrize("head", ["paper", "gru"])
+@pytest.mark.parametrize("head", HEADS)
 def test_stack_of_two_sweeps_is_the_pair(tiny_config, head):
     pair = build_model(replace_config(tiny_config, {"model.head": head}), compile_mode="none")
     stack = build_model(_config(tiny_config, "stack", 2, **{"model.head": head}), compile_mode="none")
@@ -78,7 +103,7 @@ def test_stack_of_two_sweeps_is_the_pair(tiny_config, head):
     np.testing.assert_array_equal(stack(x)["flow_mps"].numpy(), pair(x)["flow_mps"].numpy())
 
 
-@pytest.mark.parametrize("head", ["paper", "gru"])
+@pytest.mark.parametrize("head", HEADS)
 @pytest.mark.parametrize("temporal,num_frames", VARIANTS)
 def test_fused_forward_equals_the_table(tiny_config, head, temporal, num_frames):
     cfg = _config(tiny_config, temporal, num_frames, **{"model.head": head})

@@ -1,7 +1,13 @@
-"""lab/training/sweeps_benchmark.py without training: the stages it plans (records per number of sweeps, a run per
-variant and seed on the records of its sweeps), the spread over seeds by hand, and when two variants count as apart."""
-import pytest
+"""lab/training/sweeps_benchmark.py without training: the stages it plans (records per number of sweeps and their
+full and filled parts, a run per variant and seed on the full part of its sweeps, the planted defect through the
+lab's runner), the parts by hand, the spread over seeds by hand, when two variants count as apart, and when the
+planted defect counts as caught."""
+import os
 
+import pytest
+import tensorflow as tf
+
+from ff3d_tf.data import pair_records
 from lab.training import sweeps_benchmark as sb
 
 
@@ -17,12 +23,22 @@ def test_stage_plan_writes_records_per_sweeps_and_runs_every_variant_and_seed(tm
     names = [s.name for s in plan]
     assert [n for n in names if n.startswith("records_")] == [
         f"records_wod_{split}_{n}" for n in (2, 3, 5) for split in ("train", "eval")]
+    # every number of sweeps split at the same rank: 5 sweeps read t0, its partner and 3 more
+    subsets = [s for s in plan if s.name.startswith("subset_")]
+    assert [s.name for s in subsets] == [f"subset_wod_{sp}_{part}_{n}" for n in (2, 3, 5)
+                                         for sp, part in (("train", "full"), ("eval", "full"), ("eval", "filled"))]
+    assert all(s.command[-1].endswith(":3") for s in subsets)
     trains = [s for s in plan if s.name.startswith("train_")]
     assert len(trains) == len(sb.VARIANTS) * 3
+    assert len([s for s in plan if s.name.startswith("eval_")]) == len(sb.VARIANTS) * 3 * 2
     delta_5 = next(s for s in plan if s.name == "train_wod_delta_5_2")
     command = " ".join(delta_5.command)
     assert "--set data.num_frames=5" in command and "--set model.temporal=delta" in command
-    assert "--set train.seed=2" in command and f"{tmp_path}/wod/records_5/train" in command
+    assert "--set train.seed=2" in command and f"{tmp_path}/wod/records_5/train_full" in command
+    assert delta_5.command[0].endswith("tools/train.py")
+    planted = next(s for s in plan if s.name == "train_wod_delta_5_reversed_0")
+    assert planted.command[0].endswith("lab/tools/run_planted.py") and planted.command[1].endswith("tools/train.py")
+    assert "model.temporal=delta_reversed" in " ".join(planted.command)
     # the user's overrides come after the benchmark's own, the variant's after both
     assert command.index("train.learning_rate=1e-3") < command.index("data.num_frames=5")
     records_5 = next(s for s in plan if s.name == "records_wod_train_5")
@@ -85,4 +101,47 @@ def test_the_best_variant_is_compared_with_the_paper_also_when_the_paper_is_best
     assert bucketed["best_variant"] is None and not bucketed["zero_flow_vs_paper_pair"]["apart"]
     # summarized again from the per-seed figures a JSON keeps: the same summary, the command recorded
     again = sb.summarize_again({"formats": {"wod": summary}, "command": "run"}, "again")
-    assert again["formats"]["wod"] == summary and again["summarized_again_by"] == "again"
+    assert again["formats"]["wod"] == {**summary, "instrument": {}} and again["summarized_again_by"] == "again"
+
+
+def _metadata_records(path, log_ids_and_stamps):
+    """A pair-records file of records holding only the scalars `subset_records` reads."""
+    def record(log_id, stamp):
+        return tf.train.Example(features=tf.train.Features(feature={
+            pair_records.SEQUENCE_KEY: tf.train.Feature(bytes_list=tf.train.BytesList(value=[log_id.encode()])),
+            pair_records.TIMESTAMP_KEY: tf.train.Feature(int64_list=tf.train.Int64List(value=[stamp]))}
+        )).SerializeToString()
+    pair_records.write_records_atomically(path, [record(*k) for k in log_ids_and_stamps])
+
+
+def test_subset_records_splits_each_log_at_the_rank_of_its_t0_sweep(tmp_path):
+    """Log a: t0 stamps 30, 10, 20, 40 in file order (ranks 2, 0, 1, 3); log b: 5, 6 (ranks 0, 1). Rank 2: full keeps
+    a's 30 and 40, filled keeps a's 10, 20 and all of b, each file in its own order, bytes unchanged."""
+    source = tmp_path / "src"
+    source.mkdir()
+    pair_records.write_manifest(str(source), pair_records.Manifest(
+        source="av2", laser_names=(1, 2), returns=(1,), max_frame_gap_s=0.15, partner="next", num_frames=5))
+    _metadata_records(str(source / ("a" + pair_records.FILE_SUFFIX)), [("a", 30), ("a", 10), ("a", 20), ("a", 40)])
+    _metadata_records(str(source / ("b" + pair_records.FILE_SUFFIX)), [("b", 5), ("b", 6)])
+
+    def stamps(directory, name):
+        return [k[1] for k in sb._t0_keys(os.path.join(directory, name + pair_records.FILE_SUFFIX), "none")]
+    assert sb.subset_records(str(source), str(tmp_path / "full"), "full", 2) == {"kept": 2, "of": 6}
+    assert sb.subset_records(str(source), str(tmp_path / "filled"), "filled", 2) == {"kept": 4, "of": 6}
+    assert stamps(tmp_path / "full", "a") == [30, 40] and stamps(tmp_path / "full", "b") == []
+    assert stamps(tmp_path / "filled", "a") == [10, 20] and stamps(tmp_path / "filled", "b") == [5, 6]
+    assert pair_records.read_manifest(str(tmp_path / "full")) == pair_records.read_manifest(str(source))
+
+
+def test_the_planted_defect_is_caught_only_when_worse_beyond_the_spread():
+    """delta_5 moving 1.0, 1.1, 1.2 (range 0.2); reversed 1.5, 1.6, 1.7: 0.5 apart and worse: caught. Reversed 1.0,
+    1.15, 1.3 (range 0.3): 0.05 apart: not caught. Reversed better: never caught, apart or not."""
+    def rows(corrected, planted):
+        return {sb.CORRECTED: {f: sb.spread(corrected) for f in sb.SEPARATION_FIGURES},
+                sb.PLANTED: {f: sb.spread(planted) for f in sb.SEPARATION_FIGURES}}
+    caught = sb.instrument(rows([1.0, 1.1, 1.2], [1.5, 1.6, 1.7]))["moving_mps"]
+    assert caught["caught"] and caught["planted_worse"] and caught["difference"] == pytest.approx(0.5)
+    assert not sb.instrument(rows([1.0, 1.1, 1.2], [1.0, 1.15, 1.3]))["moving_mps"]["caught"]
+    better = sb.instrument(rows([1.5, 1.6, 1.7], [1.0, 1.1, 1.2]))["moving_mps"]
+    assert better["apart"] and not better["planted_worse"] and not better["caught"]
+    assert sb.instrument({sb.CORRECTED: {}}) == {}
