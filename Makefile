@@ -20,7 +20,7 @@ $(CORE_STAMP): setup.py constraints.txt Makefile
 	touch $(CORE_STAMP)
 
 $(STAMP): $(CORE_STAMP)
-	$(PY) -m pip install -q -c constraints.txt -e ".[dev,beam,xla,onnx,viz3d]"
+	$(PY) -m pip install -q -c constraints.txt -e ".[dev,beam,xla,onnx,viz3d,selfsup]"
 	touch $(STAMP)
 
 # Test files run on TEST_WORKERS processes (pytest-xdist, whole files per process, as Bazel runs its targets side by

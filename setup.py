@@ -27,6 +27,9 @@ setup(
         "onnx": ["tf2onnx==1.17.0", "onnx==1.19.1", "onnxruntime==1.31.1"],
         # 3D recordings of clouds and flow for the Rerun viewer (tools/predict.py --rerun).
         "viz3d": ["rerun-sdk==0.41.0"],
+        # Self-supervision's preparation (tools/prepare_self_supervision.py): DUFOMap's dynamic points and the
+        # authors' HDBSCAN (scikit-learn 1.9.1's fails in its epsilon search on some sweeps; hdbscan pulls it in).
+        "selfsup": ["dufomap==1.1.1", "hdbscan==0.8.44"],
         # Training and benchmarks on NVIDIA GPUs: the same TF with its CUDA libraries.
         "gpu": ["tensorflow[and-cuda]==2.21.0"],
     },

@@ -75,7 +75,9 @@ CLASS_ABLATIONS = ("none",) + tuple(f"{c}_{mode}" for c in ABLATED_CLASSES for m
 
 
 DATA_SOURCES = ("wod", "pair_records")  # data.source
-TRAINING_LABELS = ("human", "pseudo")  # data.labels
+# data.labels: human (the boxes' flow labels), pseudo (NSFP pseudo-labels of pair records, `tools/pseudo_label.py`) or
+# self (no flow labels: the self-supervised losses' per-point fields, `tools/prepare_self_supervision.py`).
+TRAINING_LABELS = ("human", "pseudo", "self")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,9 +128,9 @@ class DataConfig:
             raise ConfigError(f"data.source={self.source!r} unknown; one of {DATA_SOURCES}")
         if self.labels not in TRAINING_LABELS:
             raise ConfigError(f"data.labels={self.labels!r} unknown; one of {TRAINING_LABELS}")
-        if self.labels == "pseudo" and self.source != "pair_records":
-            raise ConfigError("data.labels=pseudo: pseudo-labels live in pair records (data.source=pair_records, "
-                              "written by tools/pseudo_label.py)")
+        if self.labels != "human" and self.source != "pair_records":
+            raise ConfigError(f"data.labels={self.labels}: its fields live in pair records (data.source=pair_records, "
+                              "written by tools/pseudo_label.py or tools/prepare_self_supervision.py)")
         if self.source == "pair_records" and not self.ego_motion_compensation:
             raise ConfigError("data.ego_motion_compensation=false: pair records hold the t-1 cloud already moved "
                               "into the t0 frame; use data.source=wod for the ego-motion study")
@@ -167,7 +169,50 @@ COMPILE_MODES = ("auto", "xla", "hybrid", "none")  # model.compile
 HEADS = ("paper", "gru", "mlp")  # model.head (`ff3d_tf.model.heads.HEADS`)
 FORWARDS = ("fused", "table")  # model.forward
 TEMPORALS = ("pair", "stack", "delta")  # model.temporal (`ff3d_tf.model.fusions.FUSIONS`)
-LOSSES = ("l2", "deflow", "deltaflow")  # train.loss
+
+
+@dataclasses.dataclass(frozen=True)
+class LossSpec:
+    """What a training loss (`train.loss`) reads, the one statement of it: the `data.labels` it trains on, the
+    per-point fields of pair records (`schema.POINT_KEYS`) it cannot run without (`needs`), and those it reads where
+    the records hold them (`may_use`). A name with "{cloud}" stands for that field of every sweep of an example
+    (`schema.sweep_clouds(data.num_frames)`). Config validation, the training input
+    (`ff3d_tf.training.input.loss_extras`) and the training step (`ff3d_tf.model.losses.LOSS_FUNCTIONS`, one
+    function per name) read this table."""
+
+    labels: tuple[str, ...]
+    needs: tuple[str, ...] = ()
+    may_use: tuple[str, ...] = ()
+    writer: str = ""  # the tool that writes the fields it needs
+
+    def fields(self, which: str, num_frames: int) -> tuple[str, ...]:
+        """`which` ("needs" or "may_use") with every "{cloud}" name expanded over the sweeps of `num_frames`."""
+        out = []
+        for name in getattr(self, which):
+            out += [name.format(cloud=c) for c in schema.sweep_clouds(num_frames)] if "{cloud}" in name else [name]
+        return tuple(out)
+
+
+_SELF_FIELD = schema.DYNAMIC_CLUSTER_KEY_FORMAT  # per cloud: ground, static, dynamic, cluster (schema)
+LOSS_SPECS = {  # train.loss -> its spec
+    "l2": LossSpec(("human", "pseudo")),  # the paper's; ZeroFlow's on pseudo-labels
+    "deflow": LossSpec(("human", "pseudo")),
+    "deltaflow": LossSpec(("human",), may_use=("category_t0", "instance_id_t0")),
+    # SeFlow (Zhang et al., ECCV 2024): the pair's two clouds; TeFlow (arXiv 2602.19053): every sweep of the example.
+    "seflow": LossSpec(("self",), needs=tuple(_SELF_FIELD.format(cloud=c) for c in schema.sweep_clouds(2)),
+                       writer="tools/prepare_self_supervision.py"),
+    "teflow": LossSpec(("self",), needs=(_SELF_FIELD,), writer="tools/prepare_self_supervision.py"),
+}
+LOSSES = tuple(LOSS_SPECS)  # train.loss
+
+
+def loss_labels_problem(loss: str, labels: str) -> str:
+    """Why `train.loss` cannot train on `data.labels` (`LOSS_SPECS`), naming the losses that can; "" if it can."""
+    if labels in LOSS_SPECS[loss].labels:
+        return ""
+    fitting = [name for name, spec in LOSS_SPECS.items() if labels in spec.labels]
+    return (f"train.loss={loss} trains on data.labels {' or '.join(LOSS_SPECS[loss].labels)}, not {labels}: with "
+            f"data.labels={labels} use train.loss={' or '.join(fitting)}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -434,6 +479,57 @@ def nsfp_option_problem(name: str, value) -> str:
     return _NSFP_RULES[name](value)
 
 
+SELFSUP_GROUND_RULES = ("auto", "records", "height")  # selfsup.ground
+
+
+@dataclasses.dataclass(frozen=True)
+class SelfSupConfig:
+    """Self-supervision without flow labels (SeFlow, Zhang et al., ECCV 2024; TeFlow, arXiv 2602.19053): the
+    preparation job's parameters (`tools/prepare_self_supervision.py`, `ff3d_tf.labels.self_supervision`: DUFOMap
+    over each log, HDBSCAN clusters of each sweep's dynamic points) and the weights of the losses `train.loss=seflow`
+    and `teflow`. The defaults are the authors' (KTH-RPL/OpenSceneFlow; docs/label_free.md cites file and line)."""
+
+    # --- the losses: each term's weight (the authors' "add_seloss"), and the time between two sweeps
+    chamfer_weight: float = 1.0
+    dynamic_chamfer_weight: float = 1.0
+    static_flow_weight: float = 1.0
+    cluster_weight: float = 1.0
+    sweep_period_s: float = 0.1  # the authors' DELTA_T: flow in m/s times this is a sweep's displacement
+    # --- the preparation
+    # The lidar's position in the vehicle frame (m): each sweep's rays start at pose @ this point. The authors cast
+    # Argoverse 2's rays from the ego pose itself (0, 0, 0); a fleet sets its lidar's mounting position.
+    sensor_origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dufomap_resolution_m: float = 0.15  # voxel size
+    dufomap_hit_inflation_m: float = 0.2  # DUFOMap's d_s
+    dufomap_unknown_inflation: int = 1  # DUFOMap's d_p (voxels)
+    min_range_m: float = 2.0  # points nearer the vehicle origin than this (the ego vehicle) are not integrated
+    max_range_m: float = 50.0  # ... nor those farther than this
+    cluster_min_points: int = 20  # HDBSCAN's min_cluster_size
+    cluster_epsilon_m: float = 0.7  # HDBSCAN's cluster_selection_epsilon
+    # Ground flags of each sweep: records (the records' own masks, Argoverse 2's map), height
+    # (`ff3d_tf.labels.ground.height_ground_mask`), auto (records where the records carry them, else height).
+    ground: str = "auto"
+    num_threads: int = 0  # DUFOMap's threads; 0: every core
+
+    def validate(self) -> None:
+        rules = {**{name: _number(0.0, strict=False) for name in ("chamfer_weight", "dynamic_chamfer_weight",
+                                                                  "static_flow_weight", "cluster_weight")},
+                 **{name: _number(0.0, strict=True) for name in ("sweep_period_s", "dufomap_resolution_m",
+                                                                  "max_range_m", "cluster_epsilon_m")},
+                 **{name: _number(0.0, strict=False) for name in ("dufomap_hit_inflation_m", "min_range_m")},
+                 **{name: _integer(0) for name in ("dufomap_unknown_inflation", "num_threads")},
+                 "cluster_min_points": _integer(2), "ground": _one_of(SELFSUP_GROUND_RULES),
+                 "sensor_origin_m": lambda v: "" if len(v) == 3 and all(_is_number(x) for x in v) else
+                 "must be [x, y, z] in m"}
+        for name, rule in rules.items():
+            problem = rule(getattr(self, name))
+            if problem:
+                raise ConfigError(f"selfsup.{name}={getattr(self, name)!r}: {problem}")
+        if not self.min_range_m < self.max_range_m:
+            raise ConfigError(f"selfsup.min_range_m={self.min_range_m} must be below selfsup.max_range_m="
+                              f"{self.max_range_m}")
+
+
 @dataclasses.dataclass(frozen=True)
 class ExperimentConfig:
     grid: GridConfig = GridConfig()
@@ -441,6 +537,7 @@ class ExperimentConfig:
     model: ModelConfig = ModelConfig()
     train: TrainConfig = TrainConfig()
     nsfp: NsfpConfig = NsfpConfig()
+    selfsup: SelfSupConfig = SelfSupConfig()
 
     def validate(self) -> "ExperimentConfig":
         self.grid.validate()
@@ -448,12 +545,15 @@ class ExperimentConfig:
         self.model.validate()
         self.train.validate()
         self.nsfp.validate()
+        self.selfsup.validate()
         if self.model.temporal == "pair" and self.data.num_frames != 2:
             raise ConfigError(f"data.num_frames={self.data.num_frames} with model.temporal=pair: the pair reads 2 "
                               "sweeps; model.temporal=stack or delta reads more")
-        if self.train.loss == "deltaflow" and self.data.labels == "pseudo":
-            raise ConfigError("train.loss=deltaflow: its class and instance terms need human labels; pseudo-labels "
-                              "(data.labels=pseudo) have no classes: use train.loss=l2 or deflow")
+        # data.labels=human with a loss that trains on other labels is the config of evaluating such a model (its
+        # evaluation scores human labels); training refuses it (`ff3d_tf.training.input.loss_extras`).
+        problem = loss_labels_problem(self.train.loss, self.data.labels)
+        if problem and self.data.labels != "human":
+            raise ConfigError(problem)
         return self
 
     def to_dict(self) -> dict[str, Any]:

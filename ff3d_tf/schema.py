@@ -135,14 +135,22 @@ def sweep_clouds(num_frames: int) -> tuple[str, ...]:
 PARTNERS = ("previous", "next")
 
 
-def slots_newest_first(num_frames: int, partner: str) -> tuple[int, ...]:
-    """The slots of `sweep_clouds(num_frames)` (0 = t0, 1 = tm1, ...) ordered by the time of the sweep they hold,
-    newest first: with `partner` "previous" the slot order itself; with "next" the partner (slot 1, sweep t+1) first,
-    then t0 and the history."""
+def slot_sweep_offsets(num_frames: int, partner: str) -> tuple[int, ...]:
+    """The time of each slot's sweep from t0 (slot 0 = t0, 1 = tm1, ...), in sweeps: (0, -1, -2, ...) with `partner`
+    "previous"; (0, +1, -1, -2, ...) with "next"."""
     if partner not in PARTNERS:
         raise ValueError(f"partner={partner!r}: one of {PARTNERS}")
-    slots = tuple(range(num_frames))
-    return slots if partner == "previous" else (1, 0) + slots[2:]
+    if partner == "previous":
+        return tuple(-k for k in range(num_frames))
+    return (0, 1) + tuple(-k for k in range(1, num_frames - 1))
+
+
+def slots_newest_first(num_frames: int, partner: str) -> tuple[int, ...]:
+    """The slots of `sweep_clouds(num_frames)` ordered by the time of the sweep they hold, newest first: with
+    `partner` "previous" the slot order itself; with "next" the partner (slot 1, sweep t+1) first, then t0 and the
+    history."""
+    offsets = slot_sweep_offsets(num_frames, partner)
+    return tuple(sorted(range(num_frames), key=lambda slot: -offsets[slot]))
 
 
 def cloud_keys(cloud: str) -> dict:
@@ -165,15 +173,33 @@ def past_sweep_keys(num_frames: int) -> tuple[str, ...]:
                  for part in ("xyz", "features", "count", "pose"))
 
 
+# Self-supervision (SeFlow, TeFlow; written by `tools/prepare_self_supervision.py`, read by `train.loss=seflow` and
+# `teflow`): one key per sweep of an example, what the preparation job found of each of its points: ground
+# (`DYNAMIC_CLUSTER_GROUND`), static by DUFOMap (`DYNAMIC_CLUSTER_STATIC`), dynamic in no cluster of its sweep (HDBSCAN's
+# noise, `DYNAMIC_CLUSTER_NOISE`), or dynamic in the cluster k >= 1 of its sweep (numbered within the sweep).
+DYNAMIC_CLUSTER_KEY_FORMAT = "dynamic_cluster_{cloud}"
+DYNAMIC_CLUSTER_GROUND, DYNAMIC_CLUSTER_STATIC, DYNAMIC_CLUSTER_NOISE = -2, -1, 0
+for _cloud in sweep_clouds(MAX_NUM_FRAMES):
+    POINT_KEYS[DYNAMIC_CLUSTER_KEY_FORMAT.format(cloud=_cloud)] = PointKey(
+        "int32", (), _cloud, "self-supervision: -2 ground, -1 static (DUFOMap), 0 dynamic in no cluster, k >= 1 "
+        "dynamic in cluster k of its sweep (HDBSCAN)", "int16", optional=True, padding=DYNAMIC_CLUSTER_STATIC)
+
+
 def _point_keys(cloud: str, optional: bool) -> tuple[str, ...]:
     return tuple(k for k, spec in POINT_KEYS.items() if spec.cloud == cloud and spec.optional == optional)
+
+
+def extra_point_keys(num_frames: int) -> tuple[str, ...]:
+    """The optional per-point keys (extras) an example of `num_frames` sweeps may hold: those of each of its clouds."""
+    return tuple(k for c in sweep_clouds(num_frames) for k in _point_keys(c, True))
 
 
 PAIR_T0_POINT_KEYS = _point_keys("t0", False)  # [N0, ...] per point
 PAIR_TM1_POINT_KEYS = _point_keys("tm1", False)  # [N1, ...] per point
 PAIR_T0_EXTRA_POINT_KEYS = _point_keys("t0", True)
 PAIR_TM1_EXTRA_POINT_KEYS = _point_keys("tm1", True)
-PAIR_EXTRA_POINT_KEYS = PAIR_T0_EXTRA_POINT_KEYS + PAIR_TM1_EXTRA_POINT_KEYS
+# Every extra of any cloud (records of more sweeps may hold those of their older clouds): what a manifest may list.
+PAIR_EXTRA_POINT_KEYS = extra_point_keys(MAX_NUM_FRAMES)
 # The extras the Argoverse 2 challenge's evaluation reads (its eval mask and meta-classes), and those AV2 pair records
 # carry (also the partner cloud's ground, for the pseudo-label job, and each point's cuboid, for DeltaFlow's loss).
 AV2_EVAL_KEYS = ("is_ground_t0", "category_t0")

@@ -39,7 +39,8 @@ def test_yaml_is_data_only(tmp_path):
 
 @pytest.mark.parametrize("override,message", [
     ("train.learnin_rate=1", r"unknown config key train.learnin_rate; known: \[.*'learning_rate'"),
-    ("gridd.num_pillars_x=8", r"unknown config key gridd; known: \['data', 'grid', 'model', 'nsfp', 'train'\]"),
+    ("gridd.num_pillars_x=8",
+     r"unknown config key gridd; known: \['data', 'grid', 'model', 'nsfp', 'selfsup', 'train'\]"),
     ("grid.x_range_m=[1, 2, 3]", r"grid.x_range_m: expected a list of 2 values, got 3"),
     ("grid.z_range_m=[-3]", r"grid.z_range_m: expected a list of 2 values, got 1"),
     ("train.background_weight=null", r"train.background_weight: expected a finite number, got None"),
@@ -99,7 +100,9 @@ def test_lidar_selection_rule_is_the_readers(laser_names, returns):
 
 
 @pytest.mark.parametrize("override, key", [
-    ("model.head=mlp", "model.head"),
+    ("model.head=transformer", "model.head"),
+    ("data.partner=sideways", "data.partner"),
+    ("data.augment_jitter_sigma_m=-0.01", "data.augment_jitter_sigma_m"),
     ("model.gru_iterations=-1", "model.gru_iterations"),
     ("train.loss=huber", "train.loss"),
     ("data.augment_flip_prob=1.5", "data.augment_flip_prob"),

@@ -268,9 +268,11 @@ def _pairs_of_records(path, cfg: ExperimentConfig, manifest, extras: tuple, meta
         to_example, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 
-def check_records_match(manifest, cfg: ExperimentConfig, where: str, inference_only: bool = False) -> None:
+def check_records_match(manifest, cfg: ExperimentConfig, where: str, inference_only: bool = False,
+                        training_labels: bool = False) -> None:
     """ConfigError unless pair records written as `manifest` can serve `cfg` (same lidars and returns, labels;
-    `inference_only`: a predictor's input, for which unlabelled records serve)."""
+    `inference_only`: a predictor's input, for which unlabelled records serve; `training_labels`: the training input,
+    which reads the labels `data.labels` names, human or not; any other read scores human labels)."""
     d = cfg.data
     if manifest.num_frames != d.num_frames:
         raise ConfigError(f"{where}: the pair records hold {manifest.num_frames} sweeps per example; the config asks "
@@ -285,9 +287,10 @@ def check_records_match(manifest, cfg: ExperimentConfig, where: str, inference_o
         raise ConfigError(f"{where}: the pair records hold lasers {manifest.laser_names}, returns "
                           f"{manifest.returns}; the config asks for data.laser_names={d.laser_names}, "
                           f"data.returns={d.returns}: write records with that selection, or change the config")
-    if d.labels == "human" and not manifest.human_labels and not inference_only:
+    if not manifest.human_labels and not inference_only and (d.labels == "human" or not training_labels):
         raise ConfigError(f"{where}: these pair records hold no human flow labels (raw LiDAR): train on their "
-                          "pseudo-labels (tools/pseudo_label.py, data.labels=pseudo); evaluation needs labelled data")
+                          "pseudo-labels (tools/pseudo_label.py, data.labels=pseudo) or without labels "
+                          "(tools/prepare_self_supervision.py, data.labels=self); evaluation needs labelled data")
     if d.labels == "pseudo" and schema.PSEUDO_FLOW_KEY not in manifest.extras:
         raise ConfigError(f"{where}: data.labels=pseudo, but these records hold no pseudo-labels "
                           "(write them with tools/pseudo_label.py)")
@@ -324,7 +327,7 @@ def pair_dataset(files: list[str], cfg: ExperimentConfig, *, inference_only: boo
     files_ds = tf.data.Dataset.from_tensor_slices(list(files))
     if cfg.data.source == "pair_records":
         manifest = pair_records.manifest_of_files(list(files))
-        check_records_match(manifest, cfg, os.path.dirname(files[0]), inference_only)
+        check_records_match(manifest, cfg, os.path.dirname(files[0]), inference_only, training_labels)
         fn = lambda f: _pairs_of_records(f, cfg, manifest, tuple(extras), metadata, skip, training_labels)  # noqa
     else:
         if extras:

@@ -28,6 +28,16 @@ def scorable(manifest: pair_records.Manifest) -> str:
     return f"the records hold no {missing}" if missing else ""
 
 
+def reading_records(cfg, manifest: pair_records.Manifest) -> dict:
+    """The config changes that read records of `manifest` whatever the job's config says of the model's input: the
+    records' sweeps per example (`data.num_frames`; the pseudo-label job reads a records directory, not the config,
+    for it), and a temporal model that reads that many (the model is not run here: only the pair is scored)."""
+    changes = {"data.num_frames": manifest.num_frames}
+    if manifest.num_frames > 2 and cfg.model.temporal == "pair":
+        changes["model.temporal"] = "stack"
+    return changes
+
+
 def score_pseudo_records(files: list[str], cfg) -> dict:
     """{"nsfp": challenge scores of the pseudo-labels, "zero_flow": of zero flow, "pairs", "evaluated_points",
     "evaluated_points_without_pseudo_label", "pairs_without_pseudo_labels"} over every pair of `files` (pseudo-label
@@ -40,7 +50,7 @@ def score_pseudo_records(files: list[str], cfg) -> dict:
     has_valid = schema.PSEUDO_VALID_KEY in manifest.extras
     cfg = replace_config(cfg, {"data.source": "pair_records", "data.labels": "human", "data.crop_to_grid": False,
                                "data.remove_ground_below_z_m": None, "data.point_keep_fraction": 1.0,
-                               "data.class_ablation": "none"})
+                               "data.class_ablation": "none", **reading_records(cfg, manifest)})
     extras = SCORE_EXTRAS + ((schema.PSEUDO_VALID_KEY,) if has_valid else ())
     acc, acc_zero = metrics_av2.AV2FlowAccumulator(), metrics_av2.AV2FlowAccumulator()
     count = {"pairs": 0, "evaluated_points": 0, "evaluated_points_without_pseudo_label": 0,

@@ -16,10 +16,11 @@ section (`job_from_config`; `ff3d_tf.config.NsfpConfig` documents each key); the
 beside its output (`<out_dir>/config.yaml`).
 
 Input: records of any source (`tools/write_pair_records.py`, WOD or Argoverse 2, labelled or raw with `--no_labels`).
-One Beam element per records file (`ff3d_tf.data.beam_job`). NSFP takes seconds to minutes per pair, so each pair's
-flow is kept as soon as it is fitted (`<out>.parts/<index>.npy`, float32, written atomically) and a rerun after a kill
-fits only the pairs not yet done; the output file is assembled from the parts and written atomically, then the parts
-are removed. The fit is deterministic for a seed, so a resumed run writes the same bytes as an uninterrupted one.
+The job is the per-pair shape of `ff3d_tf.labels.enrich_records` (records in, fields added, records out; one Beam
+element per records file). NSFP takes seconds to minutes per pair, so each pair's flow is kept as soon as it is fitted
+(`<out>.parts/<index>.npz`, written atomically) and a rerun after a kill fits only the pairs not yet done; the output
+file is assembled from the parts and written atomically, then the parts are removed. The fit is deterministic for a
+seed, so a resumed run writes the same bytes as an uninterrupted one.
 Convention: the project's (`ff3d_tf.schema`): motion of each t0 point from its partner cloud to t0, divided by the
 gap, in m/s in the t0 vehicle frame.
 """
@@ -27,7 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import io
 import json
 import logging
 import math
@@ -41,9 +41,9 @@ import yaml
 
 from ff3d_tf import schema
 from ff3d_tf.config import ConfigError, ExperimentConfig, NsfpConfig, nsfp_option_problem
-from ff3d_tf.data import beam_job, pair_records, wod_errors
+from ff3d_tf.data import beam_job, pair_records
 from ff3d_tf.data.pairs import list_segment_files
-from ff3d_tf.labels import nsfp_av2_check
+from ff3d_tf.labels import enrich_records, nsfp_av2_check
 from ff3d_tf.labels.ground import pair_ground_masks
 from ff3d_tf.labels.nsfp import MEASURED_FIT_OPTIONS, NsfpOptions, NsfpResult, nsfp_flow, options_from_config
 
@@ -96,72 +96,7 @@ class PairFit:
 
 def output_manifest(manifest: pair_records.Manifest, written_by: str = "") -> pair_records.Manifest:
     """The input's manifest with the pseudo-labels and their validity among its extras."""
-    extras = tuple(k for k in manifest.extras if k not in PSEUDO_EXTRAS) + PSEUDO_EXTRAS
-    return dataclasses.replace(manifest, extras=extras, written_by=written_by)
-
-
-def _records(path: str, manifest: pair_records.Manifest) -> tf.data.TFRecordDataset:
-    """The serialized records of one records file."""
-    return tf.data.TFRecordDataset(path, compression_type="ZLIB" if manifest.compression == "zlib" else "")
-
-
-def _raw_examples(path: str, manifest: pair_records.Manifest, skip_bad_records: bool, counts: dict):
-    """(record index, every stored field of the record as NumPy) of each record of `path`, in file order. A record
-    that does not parse raises a FrameDecodeError naming file, record and field (`ff3d_tf.data.wod_errors`), or with
-    `skip_bad_records` is logged, counted (`skipped_records`) and left out; a corrupt TFRecord framing ends the file
-    there (nothing after it can be read) in the same two ways."""
-    extras = tuple(k for k in manifest.extras if k not in PSEUDO_EXTRAS)
-    parse = pair_records.record_parser(manifest, extras)
-    iterator, index = iter(_records(path, manifest)), -1
-    while True:
-        index += 1
-        try:
-            record = next(iterator)
-        except StopIteration:
-            return
-        except tf.errors.DataLossError:
-            error = wod_errors.FrameDecodeError(path, index, "file", "corrupt or truncated TFRecord (records after "
-                                                "it cannot be read)")
-            if not skip_bad_records:
-                raise error from None
-            _LOG.warning("skipped the rest of the file: %s", error)
-            counts["skipped_records"] += 1
-            return
-        try:
-            example = parse(record, tf.constant(wod_errors.record_source(path, index)))
-        except tf.errors.InvalidArgumentError as err:
-            tagged = wod_errors.parse_tagged_error(err.message)
-            error = tagged.error() if tagged is not None else wod_errors.FrameDecodeError(
-                path, index, "record", f"not a pair record ({err.message.splitlines()[0][:200]})")
-            if not skip_bad_records:
-                raise error from None
-            _LOG.warning("skipped: %s", error)
-            counts["skipped_records"] += 1
-            continue
-        yield index, {k: v.numpy() for k, v in example.items()}
-
-
-def _save_part(path: str, fit: PairFit) -> None:
-    buffer = io.BytesIO()
-    np.savez(buffer, flow_mps=fit.flow_mps.astype(np.float32), valid=fit.valid, problem=np.array(fit.problem))
-    with tf.io.gfile.GFile(path + ".partial", "wb") as f:
-        f.write(buffer.getvalue())
-    tf.io.gfile.rename(path + ".partial", path, overwrite=True)
-
-
-def _load_part(path: str, n: int) -> tuple[np.ndarray, np.ndarray, str] | None:
-    """(flow, valid, problem) of a pair done before, or None if missing or not of `n` points (then fitted again)."""
-    if not tf.io.gfile.exists(path):
-        return None
-    try:
-        with tf.io.gfile.GFile(path, "rb") as f:
-            with np.load(io.BytesIO(f.read()), allow_pickle=False) as part:
-                flow, valid, problem = part["flow_mps"], part["valid"], str(part["problem"])
-    except (ValueError, KeyError, OSError):
-        return None
-    if flow.shape != (n, 3) or flow.dtype != np.float32 or valid.shape != (n,) or valid.dtype != bool:
-        return None
-    return flow, valid, problem
+    return enrich_records.output_manifest(manifest, PSEUDO_EXTRAS, written_by)
 
 
 def ground_masks(ex: dict, rule: str) -> tuple[np.ndarray | None, np.ndarray | None, str]:
@@ -212,76 +147,57 @@ def fit_pair(ex: dict, job: JobOptions = JobOptions(), progress: Callable[[int, 
     return PairFit(flow, valid, result, rule, attempt + 1, problem)
 
 
-def _count_records(path: str, manifest: pair_records.Manifest) -> int:
-    """Records in the file (for the progress line); the readable ones when its framing is corrupt."""
-    count = 0
-    try:
-        for _ in _records(path, manifest):
-            count += 1
-    except tf.errors.DataLossError:
-        return count  # the framing breaks here: the records before it are those the job reads
-    return count
-
-
 def pseudo_label_file(in_path: str, out_dir: str, job: JobOptions, manifest: pair_records.Manifest,
                       out_manifest: pair_records.Manifest, skip_bad_records: bool = False) -> dict:
-    """Pseudo-labels of one records file into `out_dir` (same file name); resumable per pair. Returns counts, with
-    the pairs written without pseudo-labels named under `bad_fits`."""
-    out_path = os.path.join(out_dir, os.path.basename(in_path))
-    if tf.io.gfile.exists(out_path):
-        _LOG.info("exists, skipped: %s", out_path)
-        return {"already_done": 1}
-    parts = out_path + ".parts"
-    tf.io.gfile.makedirs(parts)
+    """Pseudo-labels of one records file into `out_dir` (same file name); resumable per pair
+    (`enrich_records.enrich_pairs`). Returns counts, with the pairs written without pseudo-labels named under
+    `bad_fits`."""
     counts = {"pairs": 0, "fitted_pairs": 0, "skipped_records": 0, "points_t0": 0, "pseudo_labelled_points": 0,
               "implausible_points": 0, "retried_pairs": 0, "nsfp_iterations": 0, "nsfp_seconds": 0.0,
               "bad_fits": []}
-    progress = beam_job.Progress(_count_records(in_path, manifest), "pairs")
+    name = os.path.basename(in_path)
+    fitted = {}  # the log line of the pair fitted last
+
+    def compute(index, ex, where):
+        started = time.time()
+
+        def fit_progress(steps, loss):
+            _LOG.info("%s pair %d: %d of at most %d steps, best loss %.5f, %.0f s", name, index, steps,
+                      job.nsfp.max_iterations, loss, time.time() - started)
+        fit = fit_pair(ex, job, fit_progress)
+        if fit.problem and job.on_bad_fit == "stop":
+            raise BadFitError(f"{where}: {fit.problem} after {fit.attempts} fits (on_bad_fit=stop; "
+                              "on_bad_fit=skip writes the pair without pseudo-labels)")
+        r = fit.result
+        counts["fitted_pairs"] += 1
+        counts["retried_pairs"] += int(fit.attempts > 1)
+        counts["implausible_points"] += int((r.valid_t0 & ~fit.valid).sum()) if not fit.problem else 0
+        counts["nsfp_iterations"] += r.num_iterations
+        counts["nsfp_seconds"] += r.grid_s + r.fit_s
+        fitted["line"] = (f"{name} pair {index}: {r.num_iterations} iterations, loss {r.loss:.5f}, "
+                          f"{r.grid_s + r.fit_s:.1f} s, ground {fit.ground_rule}, {int(fit.valid.sum())} of "
+                          f"{len(fit.valid)} points labelled" + (f", NOT LABELLED: {fit.problem}" if fit.problem
+                                                                  else ""))
+        return {PSEUDO_KEY: fit.flow_mps, PSEUDO_VALID_KEY: fit.valid, "problem": np.array(fit.problem)}
+
+    def on_pair(index, ex, part, fresh, progress_line):
+        if fresh:
+            _LOG.info("%s; %s", fitted.pop("line"), progress_line)
+        problem = str(part["problem"])
+        if problem:
+            where = enrich_records.record_where(in_path, index, ex)
+            _LOG.warning("%s: written without pseudo-labels: %s", where, problem)
+            counts["bad_fits"].append(f"{where}: {problem}")
+        counts["pairs"] += 1
+        counts["points_t0"] += len(part[PSEUDO_VALID_KEY])
+        counts["pseudo_labelled_points"] += int(part[PSEUDO_VALID_KEY].sum())
+
     t0 = time.time()
-
-    def records():
-        for index, ex in _raw_examples(in_path, manifest, skip_bad_records, counts):
-            part = os.path.join(parts, f"{index:06d}.npz")
-            done = _load_part(part, len(ex["points_xyz_t0"]))
-            where = f"{in_path}: record {index} (t0 {int(ex[pair_records.TIMESTAMP_KEY])} ns)"
-            if done is None:
-                started = time.time()
-
-                def fit_progress(steps, loss, index=index, started=started):
-                    _LOG.info("%s pair %d: %d of at most %d steps, best loss %.5f, %.0f s", os.path.basename(in_path),
-                              index, steps, job.nsfp.max_iterations, loss, time.time() - started)
-                fit = fit_pair(ex, job, fit_progress)
-                if fit.problem and job.on_bad_fit == "stop":
-                    raise BadFitError(f"{where}: {fit.problem} after {fit.attempts} fits (on_bad_fit=stop; "
-                                      "on_bad_fit=skip writes the pair without pseudo-labels)")
-                _save_part(part, fit)
-                flow, valid, problem = fit.flow_mps, fit.valid, fit.problem
-                r = fit.result
-                counts["fitted_pairs"] += 1
-                counts["retried_pairs"] += int(fit.attempts > 1)
-                counts["implausible_points"] += int((r.valid_t0 & ~valid).sum()) if not problem else 0
-                counts["nsfp_iterations"] += r.num_iterations
-                counts["nsfp_seconds"] += r.grid_s + r.fit_s
-                _LOG.info("%s pair %d: %d iterations, loss %.5f, %.1f s, ground %s, %d of %d points labelled%s; %s",
-                          os.path.basename(in_path), index, r.num_iterations, r.loss, r.grid_s + r.fit_s,
-                          fit.ground_rule, int(valid.sum()), len(valid), f", NOT LABELLED: {problem}" if problem
-                          else "", progress.step())
-            else:
-                flow, valid, problem = done
-                progress.step()
-            if problem:
-                _LOG.warning("%s: written without pseudo-labels: %s", where, problem)
-                counts["bad_fits"].append(f"{where}: {problem}")
-            counts["pairs"] += 1
-            counts["points_t0"] += len(flow)
-            counts["pseudo_labelled_points"] += int(valid.sum())
-            ex[PSEUDO_KEY], ex[PSEUDO_VALID_KEY] = flow, valid
-            yield pair_records.serialize_pair(ex, out_manifest.precision, out_manifest.extras, out_manifest.num_frames)
-
-    pair_records.write_records_atomically(out_path, records(), out_manifest.compression)
-    tf.io.gfile.rmtree(parts)
-    counts["seconds"] = time.time() - t0
-    return counts
+    result = enrich_records.enrich_pairs(in_path, out_dir, enrich_records.PairJob(PSEUDO_EXTRAS, compute, on_pair),
+                                         manifest, out_manifest, counts, skip_bad_records)
+    if "already_done" not in result:
+        result["seconds"] = time.time() - t0
+    return result
 
 
 SCORES_NAME = "pseudo_label_scores.json"
@@ -337,10 +253,9 @@ def run_pseudo_label_job(files: list[str], out_dir: str, cfg: ExperimentConfig, 
     out_manifest = output_manifest(manifest, written_by)
     pair_records.write_manifest(out_dir, out_manifest)  # before any work: a directory of other records fails here
     save_job_config(out_dir, cfg)  # ... and one of another job's pseudo-labels here
-    counts = beam_job.run_per_input(list(files), functools.partial(
+    counts = enrich_records.run_job(list(files), out_dir, out_manifest, functools.partial(
         pseudo_label_file, out_dir=out_dir, job=job, manifest=manifest, out_manifest=out_manifest,
-        skip_bad_records=skip_bad_records),
-        out_dir, "pseudo_label", beam_args)
+        skip_bad_records=skip_bad_records), "pseudo_label", beam_args)
     if not nsfp_av2_check.scorable(out_manifest):
         out_files = [os.path.join(out_dir, os.path.basename(f)) for f in files]
         counts["scores"] = nsfp_av2_check.score_pseudo_records(out_files, cfg)

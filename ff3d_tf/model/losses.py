@@ -2,13 +2,19 @@
 background weighted 0.1; pseudo-labels (ZeroFlow, Vedder et al., ICLR 2024): mean L2 error over every point, each
 scaled by its pseudo-label speed (`speed_scale`). deflow: DeFlow's speed-bucketed mean (Zhang et al., ICRA 2024);
 deltaflow: that plus DeltaFlow's class- and instance-balanced terms (Zhang et al., arXiv 2508.17054). See the
-section "DeFlow's and DeltaFlow's losses" below for their constants and sources."""
+section "DeFlow's and DeltaFlow's losses" below for their constants and sources. seflow, teflow: without flow labels
+(`ff3d_tf.model.selfsup_losses`). Which labels and fields each reads: `ff3d_tf.config.LOSS_SPECS`; the function of
+each name: `LOSS_FUNCTIONS`."""
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import metrics_av2, schema
+from ff3d_tf.config import LOSS_SPECS, SelfSupConfig
+from ff3d_tf.model import selfsup_losses
 
 
 def point_weights(class_id, point_valid, background_weight: float = 0.1):
@@ -53,46 +59,92 @@ def per_sample_distillation_loss(flow_pseudo_mps, flow_pred_mps, point_valid):
     return tf.reduce_sum(w * l2, -1) / tf.maximum(count, 1.0)
 
 
+@dataclasses.dataclass(frozen=True)
+class LossContext:
+    """What a loss reads of the config beside the batch: the labels it trains on (`data.labels`), the background
+    weight (`train.background_weight`), the self-supervision's weights (`selfsup`) and the partner sweep
+    (`data.partner`, None: "previous")."""
+    labels: str = "human"
+    background_weight: float = 0.1
+    selfsup: SelfSupConfig = SelfSupConfig()
+    partner: str | None = None
+
+    @classmethod
+    def of(cls, cfg) -> "LossContext":
+        """The context of an ExperimentConfig."""
+        return cls(cfg.data.labels, cfg.train.background_weight, cfg.selfsup, getattr(cfg.data, "partner", None))
+
+
+def _l2_loss(batch, outputs, valid, context: LossContext):
+    if context.labels == "pseudo":
+        return per_sample_distillation_loss(batch["flow_mps_t0"], outputs["flow_mps"], valid)
+    return per_sample_flow_loss(batch["flow_mps_t0"], outputs["flow_mps"], batch["class_id_t0"], valid,
+                                context.background_weight)
+
+
+def _deflow_loss(batch, outputs, valid, context: LossContext):
+    if context.labels != "pseudo":
+        valid &= batch["class_id_t0"] >= 0  # unlabelled points (class -1) carry no label
+    return per_sample_deflow_loss(batch["flow_mps_t0"], outputs["flow_mps"], valid)
+
+
+def _deltaflow_loss(batch, outputs, valid, context: LossContext):
+    valid &= batch["class_id_t0"] >= 0
+    meta_class = deltaflow_meta_class(batch["class_id_t0"], batch.get("category_t0"))
+    return per_sample_deltaflow_loss(batch["flow_mps_t0"], outputs["flow_mps"], valid, meta_class,
+                                     batch.get("instance_id_t0"))
+
+
+def _seflow_loss(batch, outputs, valid, context: LossContext):
+    return selfsup_losses.per_sample_self_supervised_loss(batch, {**outputs, "point_valid": valid}, context.selfsup,
+                                                          context.partner, temporal=False)
+
+
+def _teflow_loss(batch, outputs, valid, context: LossContext):
+    return selfsup_losses.per_sample_self_supervised_loss(batch, {**outputs, "point_valid": valid}, context.selfsup,
+                                                          context.partner, temporal=True)
+
+
+# train.loss -> fn(batch, outputs, valid [B,N] bool, LossContext) -> [B]: one per name of `config.LOSS_SPECS`, which
+# says which labels each trains on and which fields of the batch it reads (tests/model/test_losses.py ties the two).
+LOSS_FUNCTIONS = {"l2": _l2_loss, "deflow": _deflow_loss, "deltaflow": _deltaflow_loss, "seflow": _seflow_loss,
+                  "teflow": _teflow_loss}
+
+
 def per_sample_training_loss(batch, outputs, background_weight: float, pseudo_labels: bool = False,
-                             loss: str = "l2"):
+                             loss: str = "l2", context: LossContext | None = None):
     """[B] each sample's training loss over the points that are real (`point_mask_t0`) and valid for the model.
 
-    loss (`train.loss`): "l2" the paper's `per_sample_flow_loss` (with `pseudo_labels`, ZeroFlow's
-    `per_sample_distillation_loss`); "deflow" `per_sample_deflow_loss` over the labelled points (with
-    `pseudo_labels`, over the points with a pseudo-label); "deltaflow" `per_sample_deltaflow_loss` over the labelled
-    points, meta-classes from `category_t0` where the batch has it (Argoverse 2 records) else from `class_id_t0`,
-    the instance term where the batch has `instance_id_t0`.
+    loss (`train.loss`, `LOSS_FUNCTIONS`): "l2" the paper's `per_sample_flow_loss` (with pseudo-labels, ZeroFlow's
+    `per_sample_distillation_loss`); "deflow" `per_sample_deflow_loss` over the labelled points (with pseudo-labels,
+    over the points with a pseudo-label); "deltaflow" `per_sample_deltaflow_loss` over the labelled points,
+    meta-classes from `category_t0` where the batch has it (Argoverse 2 records) else from `class_id_t0`, the instance
+    term where the batch has `instance_id_t0`; "seflow", "teflow" (`data.labels=self`): the self-supervised losses of
+    `ff3d_tf.model.selfsup_losses`, from the batch's `dynamic_cluster_*` fields.
     batch: flow_mps_t0 [B,N,3] (the pseudo-labels when training on them), class_id_t0 [B,N], point_mask_t0 [B,N];
     with pseudo-labels, optionally pseudo_valid_t0 [B,N] (points without a pseudo-label do not count);
-    outputs: the model's flow_mps, point_valid.
+    outputs: the model's flow_mps, point_valid. `context`: the labels and settings (`LossContext.of(cfg)`); without
+    it, human labels or with `pseudo_labels` pseudo-labels, and `background_weight`.
     """
+    if context is None:
+        context = LossContext("pseudo" if pseudo_labels else "human", background_weight)
+    if loss not in LOSS_FUNCTIONS:
+        raise ValueError(f"loss={loss!r}: one of {', '.join(LOSS_FUNCTIONS)}")
+    if context.labels not in LOSS_SPECS[loss].labels:
+        raise ValueError(f"loss={loss!r} trains on {' or '.join(LOSS_SPECS[loss].labels)} labels, not "
+                         f"{context.labels} labels")
     valid = outputs["point_valid"] & batch["point_mask_t0"]
-    flow_true_mps, flow_pred_mps = batch["flow_mps_t0"], outputs["flow_mps"]
-    if pseudo_labels:
-        if schema.PSEUDO_VALID_KEY in batch:
-            valid &= batch[schema.PSEUDO_VALID_KEY]
-        if loss == "l2":
-            return per_sample_distillation_loss(flow_true_mps, flow_pred_mps, valid)
-        if loss == "deflow":
-            return per_sample_deflow_loss(flow_true_mps, flow_pred_mps, valid)
-        raise ValueError(f"loss={loss!r} needs human labels (pseudo-labels have no classes)")
-    if loss == "l2":
-        return per_sample_flow_loss(flow_true_mps, flow_pred_mps, batch["class_id_t0"], valid, background_weight)
-    valid &= batch["class_id_t0"] >= 0  # unlabelled points (class -1) carry no label
-    if loss == "deflow":
-        return per_sample_deflow_loss(flow_true_mps, flow_pred_mps, valid)
-    if loss == "deltaflow":
-        meta_class = deltaflow_meta_class(batch["class_id_t0"], batch.get("category_t0"))
-        return per_sample_deltaflow_loss(flow_true_mps, flow_pred_mps, valid, meta_class, batch.get("instance_id_t0"))
-    raise ValueError(f"loss={loss!r}: one of l2, deflow, deltaflow")
+    if context.labels == "pseudo" and schema.PSEUDO_VALID_KEY in batch:
+        valid &= batch[schema.PSEUDO_VALID_KEY]
+    return LOSS_FUNCTIONS[loss](batch, outputs, valid, context)
 
 
 def batch_flow_loss(batch, outputs, background_weight: float, global_batch_size: int, pseudo_labels: bool = False,
-                    loss: str = "l2"):
-    """One replica's training loss: `per_sample_training_loss` (`train.loss`; see there for `batch` and
-    `outputs`) summed over the batch and divided by the global batch (`tf.nn.compute_average_loss`), so that N
+                    loss: str = "l2", context: LossContext | None = None):
+    """One replica's training loss: `per_sample_training_loss` (`train.loss`; see there for `batch`, `outputs` and
+    `context`) summed over the batch and divided by the global batch (`tf.nn.compute_average_loss`), so that N
     replicas' losses add up to the loss of their whole batch on one."""
-    per_sample = per_sample_training_loss(batch, outputs, background_weight, pseudo_labels, loss)
+    per_sample = per_sample_training_loss(batch, outputs, background_weight, pseudo_labels, loss, context)
     return tf.nn.compute_average_loss(per_sample, global_batch_size=global_batch_size)
 
 

@@ -24,7 +24,7 @@ import tensorflow as tf
 
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.model.forward import model_inputs
-from ff3d_tf.model.losses import batch_flow_loss
+from ff3d_tf.model.losses import LossContext, batch_flow_loss
 
 ADAM_EPSILON = 1e-7  # Keras' default, named here because the step's own Adam uses it too
 
@@ -83,6 +83,8 @@ def loss_and_grads_fn(cfg: ExperimentConfig, model, global_batch_size: int, inli
     `stateless_call` cannot collect); its BatchNorm variables then hold the new statistics too.
     `inline_stages=True` where the caller compiles this whole function with XLA (see `FastFlow3D.call`).
     """
+    context = LossContext.of(cfg)  # what `train.loss` reads of the config (config.LOSS_SPECS: labels and fields)
+
     def loss_and_grads(weights, bn_statistics, batch):
         with tf.GradientTape() as tape:
             if on_variables:
@@ -95,7 +97,7 @@ def loss_and_grads_fn(cfg: ExperimentConfig, model, global_batch_size: int, inli
                 outputs, new_bn_statistics = model.stateless_call(weights, bn_statistics, model_inputs(batch),
                                                                   training=True, inline_stages=inline_stages)
             loss = batch_flow_loss(batch, outputs, cfg.train.background_weight, global_batch_size,
-                                   pseudo_labels=cfg.data.labels == "pseudo", loss=cfg.train.loss)
+                                   loss=cfg.train.loss, context=context)
         return loss, tape.gradient(loss, sources), list(new_bn_statistics)
 
     return loss_and_grads

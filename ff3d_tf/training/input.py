@@ -8,15 +8,13 @@ goes through them, so each trains on the same files in the same order.
 """
 from __future__ import annotations
 
+import os
+
 import tensorflow as tf
 
 from ff3d_tf import schema
-from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.config import LOSS_SPECS, ConfigError, ExperimentConfig, loss_labels_problem
 from ff3d_tf.data import augment, pair_records, pairs
-
-# The record extras `train.loss=deltaflow` reads where the pair records hold them: the Argoverse 2 category of each
-# point (its meta-class; otherwise the paper class gives it) and its instance (otherwise no instance term).
-DELTAFLOW_EXTRAS = ("category_t0", "instance_id_t0")
 
 DATA_SERVICE_JOB = "ff3d_train"  # trainers sharing a tf.data service job read disjoint batches of one stream
 
@@ -28,18 +26,32 @@ def training_files(files: list[str], cfg: ExperimentConfig) -> list[str]:
 
 
 def loss_extras(files: list[str], cfg: ExperimentConfig) -> tuple[str, ...]:
-    """The extras of `files` (pair records) that the configured loss reads: for deltaflow, those of
-    `DELTAFLOW_EXTRAS` the records' manifest lists; none for the other losses or for WOD segments."""
-    if cfg.train.loss != "deltaflow" or cfg.data.source != "pair_records" or not files:
+    """The extras of `files` (pair records) that the configured loss reads (`config.LOSS_SPECS`): every field it
+    needs, and those it may use that the records' manifest lists. ConfigError before any work when the loss cannot
+    train on `data.labels`, or the records lack a field the loss needs (naming it and the tool that writes it). None
+    for WOD segments."""
+    problem = loss_labels_problem(cfg.train.loss, cfg.data.labels)
+    if problem:  # the config allows it for evaluating such a model; training cannot
+        raise ConfigError(problem)
+    spec = LOSS_SPECS[cfg.train.loss]
+    needs, may_use = (spec.fields(which, cfg.data.num_frames) for which in ("needs", "may_use"))
+    if cfg.data.source != "pair_records" or not files:
         return ()
     held = pair_records.manifest_of_files(list(files)).extras
-    return tuple(k for k in DELTAFLOW_EXTRAS if k in held)
+    missing = [k for k in needs if k not in held]
+    if missing:
+        raise ConfigError(f"{os.path.dirname(files[0])}: train.loss={cfg.train.loss} needs {missing}, which these "
+                          f"pair records do not hold (they hold {list(held) or 'no extras'}): write them with "
+                          f"{spec.writer or 'the tool that makes them'}")
+    return needs + tuple(k for k in may_use if k in held)
 
 
 def loss_notice(files: list[str], cfg: ExperimentConfig) -> str | None:
     """The line a trainer prints once at start when the loss runs reduced on `files`: deltaflow without instance
-    ids (WOD segments, or records written without them) trains without its instance term. None otherwise."""
-    if cfg.train.loss != "deltaflow" or "instance_id_t0" in loss_extras(files, cfg):
+    ids (WOD segments, or records written without them) trains without its instance term. None otherwise. Raises as
+    `loss_extras` does (the Trainer calls it first: a loss that cannot train on these files stops before any work)."""
+    extras = loss_extras(files, cfg)
+    if cfg.train.loss != "deltaflow" or "instance_id_t0" in extras:
         return None
     return ("train.loss=deltaflow: the training data carries no instance ids (instance_id_t0; pair records written "
             "from boxes carry them): training without DeltaFlow's instance term")

@@ -36,10 +36,7 @@ import statistics
 import time
 from typing import Callable
 
-import tensorflow as tf
-
 from ff3d_tf import cpu
-from ff3d_tf.data import pair_records
 from lab.paths import LAB_TOOLS_DIR, ROOT, TOOLS_DIR
 from lab.training.distillation_benchmark import Stage, print_line, run_stages, write_json
 from lab.training.heads_benchmark import FORMATS, HEADLINE_KEYS, SPLIT_SEEDS, eval_metrics, generate_stages, headline
@@ -68,6 +65,7 @@ VARIANT_NAMES = {"paper_pair": "paper model, 2 sweeps", "gru_deltaflow_pair": "G
                  PLANTED: "planted defect: delta of 5 reversed", "zero_flow": "zero flow"}
 REALISTIC_FLAGS = ("--realistic",)  # tools/make_synthetic_data.py: the sensor model
 PARTS = ("full", "filled")  # the held-out t0 sweeps with every variant's own history, and those before
+REAL_AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")  # the real pair the 2-sweep variants are also scored on
 TABLE_COLUMNS = ("moving_mps", "stationary_mps", "three_way_mean_epe_m", "bucketed_dynamic_norm_epe")
 # The figures whose means the separations compare: the paper's error on moving points (m/s), and the mean dynamic
 # bucketed normalized EPE the Argoverse 2 board ranks by (no unit). Each has its own best variant.
@@ -148,23 +146,37 @@ def stage_plan(options: Options, out_dir: str, tools_dir: str = TOOLS_DIR) -> li
                             f"{records}/{split}_{part}", f"{part}:{rank}"], [f"{records}/{split}_{part}"])
                      for split, part in (("train", "full"), ("eval", "full"), ("eval", "filled"))]
         protocol = ["--protocol", "av2"] if fmt == "av2" else []
-        for variant in options.variants:
+        # Seed by seed, every variant of a seed before the next seed: a run cut short has whole seeds to compare.
+        for seed, variant in ((seed, variant) for seed in options.seeds for variant in options.variants):
             records = f"{out_dir}/{fmt}/records_{VARIANTS[variant][0]}"
-            for seed in options.seeds:
-                run_dir = f"{out_dir}/{fmt}/{variant}/seed_{seed}"
-                sets = flags([*variant_sets(variant), f"train.seed={seed}"])
-                plan.append(Stage(f"train_{fmt}_{variant}_{seed}",
-                                  [*run_tool(variant, "train.py"), *config, *sets, "--data_dir",
-                                   f"{records}/train_full", "--model_dir", f"{run_dir}/model"], [f"{run_dir}/model"]))
-                plan += [Stage(f"eval_{fmt}_{variant}_{seed}_{part}",
-                               [*run_tool(variant, "eval.py"), *config, *sets, *protocol, "--data_dir",
-                                f"{records}/eval_{part}", "--checkpoint", f"{run_dir}/model", "--out_dir",
-                                f"{run_dir}/eval_{part}"], [f"{run_dir}/eval_{part}"]) for part in PARTS]
+            run_dir = f"{out_dir}/{fmt}/{variant}/seed_{seed}"
+            sets = flags([*variant_sets(variant), f"train.seed={seed}"])
+            plan.append(Stage(f"train_{fmt}_{variant}_{seed}",
+                              [*run_tool(variant, "train.py"), *config, *sets, "--data_dir",
+                               f"{records}/train_full", "--model_dir", f"{run_dir}/model"], [f"{run_dir}/model"]))
+            plan += [Stage(f"eval_{fmt}_{variant}_{seed}_{part}",
+                           [*run_tool(variant, "eval.py"), *config, *sets, *protocol, "--data_dir",
+                            f"{records}/eval_{part}", "--checkpoint", f"{run_dir}/model", "--out_dir",
+                            f"{run_dir}/eval_{part}"], [f"{run_dir}/eval_{part}"]) for part in PARTS]
+            if fmt == "av2" and VARIANTS[variant][0] == 2:  # and on the real Argoverse 2 pair of data/
+                plan.append(Stage(f"eval_real_{variant}_{seed}",
+                                  [tool("eval.py"), *config, *sets, *protocol, "--data_dir",
+                                   f"{out_dir}/real_av2/records", "--checkpoint", f"{run_dir}/model",
+                                   "--out_dir", f"{run_dir}/eval_real"], [f"{run_dir}/eval_real"]))
+    if "av2" in options.formats and any(VARIANTS[v][0] == 2 for v in options.variants):
+        real = Stage("records_real_av2", [tool("write_pair_records.py"), "--source", "av2", "--config",
+                                          options.config, "--input", REAL_AV2_LOG, "--out_dir",
+                                          f"{out_dir}/real_av2/records"], [f"{out_dir}/real_av2/records"])
+        first_eval = next(i for i, stage in enumerate(plan) if stage.name.startswith("eval_real_"))
+        plan.insert(first_eval, real)
     return plan
 
 
 def _t0_keys(path: str, compression: str) -> list[tuple[str, int]]:
     """(sequence id, t0 timestamp ns) of every record of one pair-records file, in file order (scalars only)."""
+    import tensorflow as tf  # here: the benchmark's tool imports this module before its start-up
+
+    from ff3d_tf.data import pair_records
     spec = {pair_records.SEQUENCE_KEY: tf.io.FixedLenFeature([], tf.string),
             pair_records.TIMESTAMP_KEY: tf.io.FixedLenFeature([], tf.int64)}
     ds = tf.data.TFRecordDataset(path, compression_type="ZLIB" if compression == "zlib" else "")
@@ -176,6 +188,9 @@ def subset_records(source: str, target: str, part: str, rank: int) -> dict:
     """Copies into `target` (with `source`'s manifest) the records of `source` whose t0 sweep has, among its log's t0
     sweeps ordered by time, a rank >= `rank` (`part` "full") or < `rank` ("filled"); the records' bytes unchanged.
     Returns {"kept": n, "of": n}."""
+    import tensorflow as tf
+
+    from ff3d_tf.data import pair_records
     if part not in PARTS:
         raise ValueError(f"part {part!r}: one of {PARTS}")
     manifest = pair_records.read_manifest(source)
@@ -272,6 +287,22 @@ def summarize_again(result: dict, command: str) -> dict:
     return {**result, "formats": formats, "summarized_again_by": command}
 
 
+def read_real(options: Options, out_dir: str) -> dict | None:
+    """{variant: spread of each headline figure over the seeds} of the 2-sweep variants on the real Argoverse 2 pair
+    (None without an av2 run)."""
+    variants = [v for v in options.variants if VARIANTS[v][0] == 2]
+    if "av2" not in options.formats or not variants:
+        return None
+    out = {}
+    for variant in variants:
+        heads = [headline(eval_metrics(f"{out_dir}/av2/{variant}/seed_{seed}/eval_real", "av2")[0], "av2")
+                 for seed in options.seeds]
+        out[variant] = {name: spread([h[name] for h in heads]) for name in HEADLINE_KEYS}
+    zero = headline(eval_metrics(f"{out_dir}/av2/{variants[0]}/seed_{options.seeds[0]}/eval_real", "av2")[1], "av2")
+    out["zero_flow"] = {name: spread([zero[name]]) for name in HEADLINE_KEYS}
+    return out
+
+
 def read_format(options: Options, out_dir: str, fmt: str) -> dict:
     """`format_result` of what the stages of format `fmt` wrote under `out_dir`."""
     per_seed, zero = {part: {} for part in PARTS}, {}
@@ -310,6 +341,8 @@ def table(result: dict) -> list[str]:
             rows = {**summary["per_variant"], "zero_flow": summary["zero_flow"]}
             lines += [f"| {label} | {VARIANT_NAMES[v]} | " + " | ".join(cell(r[c]) for c in TABLE_COLUMNS) + " |"
                       for v, r in rows.items()]
+    lines += [f"| real AV2 pair | {VARIANT_NAMES[v]} | " + " | ".join(cell(r[c]) for c in TABLE_COLUMNS) + " |"
+              for v, r in (result.get("real_av2_pair") or {}).items()]
     return lines
 
 
@@ -329,6 +362,7 @@ def run(options: Options, out_dir: str, json_path: str, command: str, tools_dir:
                 "'instrument'",
         "command": command,
         "formats": {fmt: read_format(options, out_dir, fmt) for fmt in options.formats},
+        "real_av2_pair": read_real(options, out_dir),
         "training_records_bytes": records_bytes(out_dir, options),
         "options": options.as_json(),
         "stage_commands": [" ".join([os.path.relpath(s.command[0], ROOT), *s.command[1:]]) for s in plan],

@@ -174,21 +174,23 @@ def _fake_pair(n0=5, n1=4):
             "is_ground_t0": np.array([True, False, False, True, False]),
             "is_ground_tm1": np.array([False, True, True, False]),
             "category_t0": np.array([-1, 3, 3, 0, -1], np.int32),
-            "instance_id_t0": np.array([-1, 0, 0, 1, -1], np.int32), pair_records.TIMESTAMP_KEY: 315966265259836000,
+            "instance_id_t0": np.array([-1, 0, 0, 1, -1], np.int32),
+            "dynamic_cluster_t0": np.array([-2, -1, 0, 1, 1], np.int32),
+            "dynamic_cluster_tm1": np.array([-1, 2, 2, 0], np.int32), pair_records.TIMESTAMP_KEY: 315966265259836000,
             pair_records.PARTNER_TIMESTAMP_KEY: 315966265360032000, pair_records.SEQUENCE_KEY: "log"}
 
 
 def test_extras_round_trip_and_are_masked_and_padded_with_their_points(tiny_config, tmp_path):
     ex = _fake_pair()
-    manifest = dataclasses.replace(write_records.wod_manifest(tiny_config), source="av2",
-                                   extras=schema.PAIR_EXTRA_POINT_KEYS, partner="next")
+    extras = schema.extra_point_keys(2)  # every extra of a pair's two clouds
+    manifest = dataclasses.replace(write_records.wod_manifest(tiny_config), source="av2", extras=extras,
+                                   partner="next")
     pair_records.write_manifest(str(tmp_path), manifest)
     path = str(tmp_path / ("log" + pair_records.FILE_SUFFIX))
-    pair_records.write_records_atomically(path, [pair_records.serialize_pair(
-        ex, extras=schema.PAIR_EXTRA_POINT_KEYS)])
+    pair_records.write_records_atomically(path, [pair_records.serialize_pair(ex, extras=extras)])
     cfg = replace_config(_records_config(tiny_config), {"data.crop_to_grid": False})
-    got = _numpy(pairs.pair_dataset([path], cfg, extras=schema.PAIR_EXTRA_POINT_KEYS, metadata=True))[0]
-    for k in schema.PAIR_EXTRA_POINT_KEYS:
+    got = _numpy(pairs.pair_dataset([path], cfg, extras=extras, metadata=True))[0]
+    for k in extras:
         np.testing.assert_array_equal(got[k], ex[k], err_msg=k)
     assert got[pair_records.TIMESTAMP_KEY] == 315966265259836000
     assert got[pair_records.PARTNER_TIMESTAMP_KEY] == 315966265360032000 and got[pair_records.SEQUENCE_KEY] == b"log"

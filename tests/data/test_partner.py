@@ -15,6 +15,8 @@ def _records(tmp_path, partner, num_frames):
 
 
 def test_slots_newest_first():
+    assert schema.slot_sweep_offsets(4, "previous") == (0, -1, -2, -3)  # t0, t-1, t-2, t-3
+    assert schema.slot_sweep_offsets(4, "next") == (0, 1, -1, -2)  # t0, t+1, t-1, t-2
     assert schema.slots_newest_first(5, "previous") == (0, 1, 2, 3, 4)
     assert schema.slots_newest_first(5, "next") == (1, 0, 2, 3, 4)  # t+1, t0, t-1, t-2, t-3
     with pytest.raises(ValueError, match="sideways"):
