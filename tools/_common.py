@@ -63,34 +63,70 @@ def parser(description: str, config_default: str | None = None) -> argparse.Argu
     return p
 
 
+def _onnx_config(path: str) -> str | None:
+    """The config in the metadata of the ONNX file `path` (tools/export_onnx.py writes it), as a file that lasts as
+    long as this process; None when it has none."""
+    import atexit
+    import shutil
+    import tempfile
+    from ff3d_tf.inference.onnx_export import saved_config_yaml
+    text = saved_config_yaml(path)
+    if text is None:
+        return None
+    folder = tempfile.mkdtemp(prefix="onnx_config_")
+    atexit.register(shutil.rmtree, folder, True)
+    local = os.path.join(folder, "config.yaml")
+    with open(local, "w", encoding="utf-8") as f:
+        f.write(text)
+    return local
+
+
 def saved_config(args) -> tuple[str, str] | None:
     """(the config file saved with the model, the flag's value) of the first of `CHECKPOINT_FLAGS` that `args` holds
-    and whose model has one (`ff3d_tf.checkpoints.saved_config`); None when there is none."""
+    and whose model has one (`ff3d_tf.checkpoints.saved_config`; an ONNX file's metadata); None when there is
+    none."""
     for flag in CHECKPOINT_FLAGS:
         path = getattr(args, flag, None)
         if path:
-            from ff3d_tf.checkpoints import saved_config as find
-            found = find(path)
+            if path.endswith(".onnx") and os.path.isfile(path):
+                found = _onnx_config(path)
+            else:
+                from ff3d_tf.checkpoints import saved_config as find
+                found = find(path)
             if found:
                 return found, path
     return None
 
 
-def load(args):
+def load(args, runs_model: bool = True):
     """The config of a tool: --config (when the command line gives it, even "": the built-in defaults) else the config
     saved with the model named by --checkpoint or --model_dir (one line says which file) else the parser's default;
-    then every --set. `args.config` is set to the file used (a tool that hands it on hands on the same)."""
+    then every --set. `args.config` is set to the file used (a tool that hands it on hands on the same).
+
+    `runs_model=False`: the tool runs no model (it writes or reads data only), so the config's model section does not
+    have to read the data's sweeps: `data.num_frames` > 2 needs no `--set model.temporal` (the model section is left
+    at a temporal that reads them, `NO_MODEL_TEMPORAL`, and not used)."""
     from ff3d_tf.config import ConfigError
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     if not getattr(args, "config_given", True):  # a namespace not made by `parser`: its config is as given
         found = saved_config(args)
         if found:
             args.config, model = found
-            print(f"config: {args.config}, the one saved with {model} (--config chooses another)", flush=True)
+            shown = args.config if not model.endswith(".onnx") else f"the metadata of {model}"
+            print(f"config: {shown}, the one saved with {model} (--config chooses another)", flush=True)
     try:
         return _load_config(args.config, args.set)
     except ConfigError as e:
+        if not runs_model:  # the same config, its model left able to read the sweeps: the only fault a job that
+            try:            # runs no model may ignore
+                return _load_config(args.config, [*args.set, f"model.temporal={NO_MODEL_TEMPORAL}"])
+            except ConfigError:
+                pass
         sys.exit(f"config error: {e}")
+
+
+# The model.temporal of a job that runs no model (`load(runs_model=False)`): one that reads any data.num_frames.
+NO_MODEL_TEMPORAL = "stack"
 
 
 def _load_config(path: str | None, overrides):
@@ -112,17 +148,36 @@ def _load_config(path: str | None, overrides):
             raise ConfigError(str(e).replace(local, path)) from None
 
 
+def project_errors() -> tuple[type, ...]:
+    """The errors of the project's own checks, each naming what is wrong (file, record, field): a damaged checkpoint,
+    a bad record, point file, Argoverse 2 log, submission or export file, an unusable config, and a missing input
+    file or directory. (Imported when called: some import TensorFlow.)"""
+    from ff3d_tf.checkpoints import CheckpointError
+    from ff3d_tf.config import ConfigError
+    from ff3d_tf.data.av2.argoverse2 import Argoverse2FormatError
+    from ff3d_tf.data.av2.av2_submission import SubmissionFormatError
+    from ff3d_tf.data.files.point_file_errors import PointFileError
+    from ff3d_tf.data.wod.wod_format import WireFormatError
+    from ff3d_tf.data.wod_errors import FrameDecodeError
+    from ff3d_tf.xla_program import ExportFormatError
+    return (CheckpointError, FrameDecodeError, ConfigError, PointFileError, Argoverse2FormatError,
+            SubmissionFormatError, ExportFormatError, WireFormatError, FileNotFoundError)
+
+
 def run(main) -> None:
-    """Calls a tool's `main`; a bad input the project names (a damaged checkpoint, a bad record, an unusable
-    config) ends the tool with that message and exit status 1 instead of a traceback. (The error classes are imported
-    after `main` raised: before it, no TensorFlow module may be imported, `start`.)"""
+    """Calls a tool's `main`; a bad input the project names (`project_errors`) ends the tool with that message and
+    exit status 1 instead of a traceback, and so does a data job whose inputs failed so (`DataJobError`: one line per
+    input). (The error classes are imported after `main` raised: before it, no TensorFlow module may be imported,
+    `start`.)"""
     try:
         main()
     except Exception as e:
-        from ff3d_tf.checkpoints import CheckpointError
-        from ff3d_tf.config import ConfigError
-        from ff3d_tf.data.wod_errors import FrameDecodeError
-        if isinstance(e, (CheckpointError, FrameDecodeError, ConfigError)):
+        from ff3d_tf.data.beam_job import DataJobError
+        if isinstance(e, DataJobError):
+            for failure in e.failures:
+                print(f"error: {failure}", file=sys.stderr)
+            sys.exit(f"error: {e}")
+        if isinstance(e, project_errors()):
             sys.exit(f"error: {e}")
         raise
 

@@ -16,9 +16,12 @@ local validation only. The layouts (`ff3d_tf.data.av2.av2_submission.LAYOUTS`, d
   v3  the 2026 leaderboard (OpenSceneFlow's writer): the masks' sweeps, the ego-motion-free flow (float16) of every
       point, nothing else
 The archive is read back and checked (and against --format_json, av2-api's `{val,test}_submission_format.json`:
-entries and, for v1, row counts) before the tool says done. Sweeps already written under <out>.parts/ are kept, so an
-interrupted run resumes. `--ground_truth` writes the records' own labels instead of a model's flow (a check of the
-pipeline: it scores ~0, float16 rounding).
+entries and, for v1, row counts) before the tool says done. The sweeps are written under <out>.parts/ with the
+fingerprint of what writes them (the model's files, the config, the records, the layout and the masks): an
+interrupted run resumes there, a folder left by a run of anything else stops the tool naming what differs, and the
+folder is removed once the archive is checked. The model must read the records' order (their next sweep as partner:
+a model of several sweeps trained on other data is refused). `--ground_truth` writes the records' own labels instead
+of a model's flow (a check of the pipeline: it scores ~0, float16 rounding).
 """
 import sys
 
@@ -39,7 +42,7 @@ def main():
     _common.start("inference")  # before TensorFlow is imported
     from ff3d_tf.data.av2 import av2_submission
     from ff3d_tf.data import pair_records
-    from ff3d_tf.data.pairs import list_segment_files
+    from ff3d_tf.data.pairs import list_segment_files, with_data_partner
     from ff3d_tf.training.evaluation import write_av2_submission
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
     p.add_argument("--data_dir", required=True, help="Argoverse 2 pair records of the split")
@@ -57,23 +60,24 @@ def main():
     p.add_argument("--out", required=True, help="the submission .zip")
     p.add_argument("--max_pairs", type=int, default=0, help="the first N sweeps only: a partial archive (a check)")
     args = p.parse_args()
-    cfg = _common.load(args)
-    from ff3d_tf.config import replace_config
+    cfg = _common.load(args, runs_model=not args.ground_truth)
+    from ff3d_tf.config import ConfigError, replace_config
     cfg = replace_config(cfg, {"data.source": "pair_records"})
     files = list_segment_files(args.data_dir)
+    cfg = with_data_partner(cfg, files)  # the records' order (data.partner), which the model must read
     if args.ground_truth:
         manifest = pair_records.manifest_of_files(files)
         if not manifest.human_labels:
-            raise ValueError(f"{args.data_dir}: --ground_truth submits the records' labels, but these records hold "
-                             "none (written with --no_labels, e.g. the test split): give --checkpoint")
-        predictor = _LabelsAsPrediction()
+            raise ConfigError(f"{args.data_dir}: --ground_truth submits the records' labels, but these records hold "
+                              "none (written with --no_labels, e.g. the test split): give --checkpoint")
+        predictor, model = _LabelsAsPrediction(), {"kind": "ground_truth"}
     else:
-        from ff3d_tf.inference.predictor import load_predictor
-        predictor = load_predictor(cfg, args.checkpoint)
+        from ff3d_tf.inference.predictor import load_predictor, model_fingerprint
+        predictor, model = load_predictor(cfg, args.checkpoint), model_fingerprint(args.checkpoint)
     summary = write_av2_submission(cfg, files, predictor, args.out, args.leaderboard,
                                    args.split, masks=args.masks, format_json=args.format_json,
                                    max_pairs=args.max_pairs, supervised=not args.self_supervised,
-                                   log_fn=lambda s: print(s, flush=True))
+                                   log_fn=lambda s: print(s, flush=True), model=model)
     for note in summary["notes"]:
         print(note, file=sys.stderr)
     print(f"done: {args.out} holds {summary['sweeps']} sweeps of {summary['logs']} logs, {summary['rows']} rows, "
@@ -82,10 +86,4 @@ def main():
 
 
 if __name__ == "__main__":
-    try:
-        _common.run(main)
-    except Exception as e:  # noqa: BLE001  (the error class is imported once TensorFlow may be)
-        from ff3d_tf.data.av2.av2_submission import SubmissionFormatError
-        if not isinstance(e, (SubmissionFormatError, ValueError)):
-            raise
-        sys.exit(f"error: {e}")
+    _common.run(main)

@@ -15,7 +15,6 @@ python tools/eval.py --protocol av2 --set data.source=pair_records --data_dir AV
 """
 import json
 import os
-import sys
 
 import _common
 
@@ -23,7 +22,7 @@ import _common
 def main():
     _common.start("inference")  # before TensorFlow is imported
     from ff3d_tf import metrics as M
-    from ff3d_tf.data.pairs import list_segment_files
+    from ff3d_tf.data.pairs import list_segment_files, with_data_partner
     from ff3d_tf.inference.predictor import load_predictor
     from ff3d_tf.training.evaluation import evaluate, write_results
     p = _common.parser(__doc__, "configs/fastflow3d_waymo.yaml")
@@ -41,10 +40,12 @@ def main():
     args = p.parse_args()
     if args.masks and args.protocol != "av2":
         p.error("--masks needs --protocol av2")
-    cfg = _common.load(args)
-    files = list_segment_files(args.data_dir)
     if (args.method == "model") != bool(args.checkpoint) or (args.method == "nsfp" and not args.out_dir):
         p.error("--method model needs --checkpoint; --method nsfp takes no model and needs --out_dir")
+    cfg = _common.load(args, runs_model=args.method == "model")
+    files = list_segment_files(args.data_dir)
+    # The order of the data's sweeps (data.partner: the records' manifest, WOD's previous), which the model must read.
+    cfg = with_data_partner(cfg, files)
     if args.method == "nsfp":
         from ff3d_tf.labels import nsfp_predictor
         predictor = nsfp_predictor.predictor_from_config(cfg, args.sweep_period_s, lambda s: print(s, flush=True))
@@ -67,15 +68,11 @@ def main():
 
 
 def _av2(cfg, files, predictor, max_pairs, out_dir, masks):
+    import tensorflow as tf
     from ff3d_tf import metrics as M
     from ff3d_tf import metrics_av2
-    from ff3d_tf.data.av2.av2_submission import SubmissionFormatError
-    from ff3d_tf.training.evaluation import evaluate_av2
-    try:
-        r = evaluate_av2(cfg, files, predictor, max_pairs=max_pairs, log_fn=lambda s: print(s, flush=True),
-                         masks=masks)
-    except SubmissionFormatError as e:
-        sys.exit(f"error: {e}")
+    from ff3d_tf.training.evaluation import EVAL_CONFIG_NAME, evaluate_av2
+    r = evaluate_av2(cfg, files, predictor, max_pairs=max_pairs, log_fn=lambda s: print(s, flush=True), masks=masks)
     print(f"points scored: {r['points']}")
     print(metrics_av2.format_challenge_table(r["model"], "FastFlow3D (this checkpoint)"))
     print()
@@ -85,11 +82,12 @@ def _av2(cfg, files, predictor, max_pairs, out_dir, masks):
     print(M.format_paper_table(r["paper_zero_flow"], "zero flow on the same points, paper classes, m/s"))
     if r["points_without_prediction"]:
         print(f"{r['points_without_prediction']} eval-mask points lie outside the model's grid: scored with flow 0")
-    os.makedirs(out_dir, exist_ok=True)
+    tf.io.gfile.makedirs(out_dir)
     path = os.path.join(out_dir, "metrics_av2.json")
-    with open(path, "w") as f:
+    with tf.io.gfile.GFile(path, "w") as f:
         json.dump(r, f, indent=1, sort_keys=True, default=float)
-    print(f"wrote {path}")
+    cfg.save(os.path.join(out_dir, EVAL_CONFIG_NAME))  # the evaluation's own config, beside its results
+    print(f"wrote {path} and {EVAL_CONFIG_NAME}")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
-"""Export a checkpoint as a SavedModel for serving: python tools/export.py --config C --checkpoint M --out DIR"""
-import os
+"""Export a checkpoint as a SavedModel for serving: python tools/export.py --config C --checkpoint M --out DIR
 
+The SavedModel records the order of the sweeps its model reads (data.num_frames, data.partner, model.temporal;
+docs/deployment.md, "Several sweeps"), and DIR/config.yaml is the config with the model's partner."""
 import _common
 
 
@@ -14,9 +15,10 @@ def main():
     args = p.parse_args()
     cfg = _common.load(args)
     model = restore_model(cfg, args.checkpoint)
-    export_saved_model(model, args.out, cfg.data.point_bucket_base, cfg.model.jit_compile)
-    cfg.save(os.path.join(args.out, "config.yaml"))  # the tools given this SavedModel load it (tools/_common.py)
-    print(f"wrote SavedModel {args.out} (signature serving_default) and its config.yaml")
+    # config.yaml beside it: the tools given this SavedModel load it (tools/_common.py)
+    export_saved_model(model, args.out, cfg.data.point_bucket_base, cfg.model.jit_compile, cfg=cfg)
+    print(f"wrote SavedModel {args.out} (signature serving_default, {model.num_frames} sweeps, partner "
+          f"{model.partner}) and its config.yaml")
 
 
 if __name__ == "__main__":

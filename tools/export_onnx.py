@@ -5,7 +5,8 @@ python tools/export_onnx.py --config C --checkpoint M --out model.onnx [--varian
 
 `loop` (default): the point encoder in chunks (ONNX Loop), poses as float64 inputs, for ONNX Runtime. `single_chunk`:
 no Loop and, by default, the float32 relative transform t0_from_tm1 as input (no float64), for TensorRT 10 (which runs
-ScatterElements with reduction add as a plugin). See ff3d_tf/inference/onnx_export.py.
+ScatterElements with reduction add as a plugin). See ff3d_tf/inference/onnx_export.py. The file carries the config
+(with the order of the sweeps its model reads) in its metadata: the tools given it load that config.
 """
 import json
 
@@ -26,7 +27,7 @@ def main():
     args = p.parse_args()
     cfg = _common.load(args)
     model = restore_model(cfg, args.checkpoint)
-    info = onnx_export.export_onnx(model, args.out, args.variant, args.pose_inputs, args.opset)
+    info = onnx_export.export_onnx(model, args.out, args.variant, args.pose_inputs, args.opset, cfg=cfg)
     print(json.dumps(info, indent=1))
     print(f"wrote {args.out} ({info['variant']}, inputs {', '.join(info['inputs'])})")
 

@@ -64,10 +64,12 @@ def main():
                                           reference=args.reference)
     except ValueError as e:
         p.error(str(e))
-    cfg.save(os.path.join(args.out, "config.yaml"))  # the tools given this export load it (tools/_common.py)
+    from ff3d_tf.inference.predictor import with_model_partner
+    # the tools given this export load it (tools/_common.py), the model's partner in it (as in manifest.json)
+    with_model_partner(cfg, model).save(os.path.join(args.out, "config.yaml"))
     print(f"wrote {len(manifest['artifacts'])} forward and {len(manifest['train_artifacts'])} training-step artifacts "
           f"and {xla_export_dir.WEIGHTS_NAME} to {args.out}")
 
 
 if __name__ == "__main__":
-    main()
+    _common.run(main)

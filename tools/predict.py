@@ -14,20 +14,25 @@ python tools/predict.py --method nsfp --sweeps_dir D --out_dir O [--sweep_period
 
 Own point clouds (.npy, .npz, KITTI .bin, PCD, PLY; points in the vehicle frame, metres): formats, the intensity
 rule and the poses of a sweeps directory (D/poses.txt or D/<sweep>.pose.txt|.pose.npy) are described in
-ff3d_tf/data/files/point_files.py. Without poses the t-1 cloud is taken as already in the t0 vehicle frame. Each pair
-writes <t0 sweep name>.npz (flow_mps, point_valid, points_xyz_t0) and <t0 sweep name>.feather, one row per point
-of the t0 file in its order (points outside the grid: point_valid false, flow 0), and a BEV PNG every --png_every
-pairs. --rerun (any input) writes both clouds and the flow arrows of every pair on a `sweep` time line
-(ff3d_tf/viz3d.py); open it with `rerun O/flow.rrd`. The job: ff3d_tf/inference/predict_job.py.
+ff3d_tf/data/files/point_files.py. Without poses the past clouds are taken as already in the t0 vehicle frame. Each
+predicted sweep writes <sweep name>.npz (flow_mps, point_valid, points_xyz_t0) and <sweep name>.feather, one row per
+point of the sweep's file in its order (points outside the grid: point_valid false, flow 0), and a BEV PNG every
+--png_every pairs. The examples are built in the order of the sweeps the model reads (its data.num_frames and
+data.partner, saved with it): every sweep after the first for a model of the previous sweep, every sweep before the
+last for a model of the next sweep (Argoverse 2 challenge records); a sweep further than data.max_frame_gap_s after
+the one before it (D/timestamps.txt) is an error (data.skip_bad_records: the examples across it skipped). Every flow
+written is the velocity of the t0 points (m/s). --rerun (any input) writes both clouds and the flow arrows of every
+pair on a `sweep` time line (ff3d_tf/viz3d.py); open it with `rerun O/flow.rrd`. The job:
+ff3d_tf/inference/predict_job.py.
 """
 import argparse
-import sys
+import itertools
+import os
 
 import _common
+import numpy as np
 
-from ff3d_tf import viz3d
 from ff3d_tf.data.files import point_files
-from ff3d_tf.data.files.point_file_errors import PointFileError
 
 
 def _intensity_scale(text: str):
@@ -47,7 +52,7 @@ def _arguments():
                                                                      "where a sweeps directory has no timestamps.txt")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--input", help="one WOD segment TFRecord")
-    src.add_argument("--av2_log", help="an Argoverse 2 log directory (two consecutive sweeps)")
+    src.add_argument("--av2_log", help="an Argoverse 2 log directory: every sweep with a partner")
     src.add_argument("--points_t0", help="your t0 point cloud (.npy, .npz, .bin, .pcd, .ply); with --points_tm1")
     src.add_argument("--sweeps_dir", help="a directory of consecutive sweeps (sorted by name), each pair predicted; "
                                           "poses from D/poses.txt or D/<sweep>.pose.txt|.pose.npy if present")
@@ -82,14 +87,44 @@ def _arguments():
     return args
 
 
-def _source(args, cfg):
-    """The pair source of the command line (`predict_job.PairSource`)."""
+def _av2_log_examples(log_dir: str, cfg, order):
+    """The model examples (NumPy) of every sweep of an Argoverse 2 log that has a partner, in the model's `order`:
+    the challenge's pairs (`av2.challenge_pair`: the next sweep in the t-1 slot, labelled where the log has
+    annotations) for a model of the next sweep, else each sweep with the ones before it (`av2.labelled_pair`, the
+    t-1 sweep, and the log's earlier sweeps, its first standing in for those it lacks)."""
+    import tensorflow as tf
+    from ff3d_tf.data import pair_records, pairs
+    from ff3d_tf.data.av2 import argoverse2
+    from ff3d_tf.labels import av2
+    stamps = argoverse2.sweep_timestamps(log_dir)
+    if order.partner_matters and order.partner == "next":
+        labels = os.path.isfile(os.path.join(log_dir, av2.ANNOTATIONS_NAME))
+        for index in range(len(stamps) - 1):
+            ex = av2.challenge_pair(log_dir, index, cfg, labels)
+            yield {k: v for k, v in ex.items() if k not in pair_records.METADATA_KEYS}
+        return
+    for index in range(1, len(stamps)):
+        f_tm1, f_t0 = av2.labelled_pair(log_dir, index)
+        history = [argoverse2.read_sweep(log_dir, stamps[max(index - k, 0)]) for k in range(2, order.num_frames)]
+        ex = pairs.make_example([{k: tf.constant(v) for k, v in f.items()} for f in (f_t0, f_tm1, *history)], cfg,
+                                seed=tf.constant([1, 7]))
+        yield {k: v.numpy() for k, v in ex.items()}
+
+
+def _source(args, cfg, order):
+    """The pair source of the command line (`predict_job.PairSource`), its examples in the model's `order` (which
+    only an Argoverse 2 log's needs when the source is made)."""
     from ff3d_tf.inference import predict_job
-    if args.av2_log:  # its labelled pair comes from the labels pipeline, which the inference job does not import
+    if args.av2_log:  # its labelled pairs come from the labels pipeline, which the inference job does not import
         import tensorflow as tf
-        from ff3d_tf.labels import av2
-        return predict_job.ExampleDataset(
-            args.av2_log, lambda: tf.data.Dataset.from_tensors(av2.model_example(args.av2_log, cfg)))
+        partner = "next" if order.partner_matters and order.partner == "next" else "previous"
+
+        def examples():  # read lazily, one example at a time (a log's sweeps would not fit in memory together)
+            rows = _av2_log_examples(args.av2_log, cfg, order)
+            first = next(rows)
+            spec = {k: tf.TensorSpec([None] * np.ndim(v), tf.as_dtype(np.asarray(v).dtype)) for k, v in first.items()}
+            return tf.data.Dataset.from_generator(lambda: itertools.chain([first], rows), output_signature=spec)
+        return predict_job.ExampleDataset(args.av2_log, examples, partner)
     if args.input:
         return predict_job.WodSegment(args.input)
     if args.sweeps_dir:
@@ -100,18 +135,20 @@ def _source(args, cfg):
 
 def main():
     _common.start("inference")  # before TensorFlow is imported
+    from ff3d_tf.config import replace_config
     from ff3d_tf.inference import predict_job
+    from ff3d_tf.inference.predictor import load_predictor, sweep_order
     args = _arguments()
-    cfg = _common.load(args)
-    predictor = None
+    cfg = _common.load(args, runs_model=args.method == "model")
     if args.method == "nsfp":  # the labels pipeline's fit, wired in here: the inference job does not import it
         from ff3d_tf.labels import nsfp_predictor
         predictor = nsfp_predictor.predictor_from_config(cfg, args.sweep_period_s, predict_job.print_line)
-    try:
-        predict_job.predict(cfg, args.checkpoint, _source(args, cfg), args.out_dir, args.png_every, args.rerun,
-                            predictor=predictor)
-    except (PointFileError, viz3d.Viz3dUnavailableError) as e:
-        sys.exit(f"error: {e}")
+    else:  # loaded first: the examples are built in the order of the sweeps it reads
+        if args.sweeps_dir or args.points_t0:  # the user's files (a directory's poses and times) checked first
+            _source(args, cfg, None).check(cfg)
+        predictor = load_predictor(replace_config(cfg, {"data.partner": None}), args.checkpoint)
+    predict_job.predict(cfg, args.checkpoint, _source(args, cfg, sweep_order(predictor)), args.out_dir,
+                        args.png_every, args.rerun, predictor=predictor)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,11 @@ tools/av2_submission.py --split test).
 `--precision compact` stores point features and flows as float16 (coordinates stay float32); `--compression zlib`
 trades read CPU for disk. Any other arguments are Beam options (e.g. --direct_num_workers=2
 --direct_running_mode=multi_processing, or a cloud runner's).
+An input whose data fails the project's checks (a bad record, a missing or reordered sweep: each error names file,
+record and field) fails alone: the others are written, then the tool prints one line per failed input and exits 1
+(a rerun after the fix resumes). The summary counts what was written and what was skipped and why (skipped_pairs:
+left out by data.skip_bad_records; pairs_without_full_history: examples whose history reaches before their
+sequence's start, which training does not read).
 """
 import argparse
 import sys
@@ -49,7 +54,7 @@ def main():
     p.add_argument("--intensity_scale", default="auto", metavar="auto|NUMBER|A/B",
                    help="files: the intensity rule of tools/predict.py (auto: integer types / their maximum)")
     args, beam_args = p.parse_known_args()
-    cfg = _common.load(args)
+    cfg = _common.load(args, runs_model=False)  # no model runs here: data.num_frames alone says the sweeps
     written_by = " ".join(["tools/write_pair_records.py"] + sys.argv[1:])
     try:  # bad arguments fail before any work
         if args.source == "wod" and args.no_labels:

@@ -6,6 +6,13 @@ unless the standard Beam options say otherwise; `--direct_num_workers=N --direct
 at once), logs progress with rate and ETA as inputs finish, and returns the summed counts, also written as JSON into
 `out_dir`.
 `process` must be picklable (a module-level function or a `functools.partial` of one).
+
+An input whose data the project's own checks reject (`input_errors`: a bad record, point file or Argoverse 2 log, a
+missing sweep, each error naming file, record and field) fails alone: the job goes on with the other inputs (their
+outputs are written, so a rerun after the input is fixed resumes), its summary counts the failed inputs
+(`FAILED_KEY`, with their messages), and `run_per_input` then raises `DataJobError` with one line per failed input,
+which the tools print as such (`tools/_common.run`), instead of Beam's tracebacks around each copy of the message.
+Any other exception (a bug) still stops the job with its traceback.
 """
 from __future__ import annotations
 
@@ -16,6 +23,28 @@ import time
 from typing import Callable
 
 _LOG = logging.getLogger(__name__)
+FAILED_KEY = "failed_inputs"  # the summary's list of "<input>: <error>" lines
+
+
+class DataJobError(RuntimeError):
+    """Inputs of a data job that failed the project's checks; `failures`: one line per input, naming it and the
+    error; `counts`: the job's summary (the other inputs' counts included)."""
+
+    def __init__(self, job_name: str, failures: list[str], total: int, counts: dict):
+        self.failures, self.counts = list(failures), counts
+        super().__init__(f"{job_name}: {len(failures)} of {total} inputs failed (each named above); the others are "
+                         "written, and a rerun after the fix resumes")
+
+
+def input_errors() -> tuple[type, ...]:
+    """The errors of the project's checks of input data, each naming file, record and field (imported when called:
+    the job's workers import them in their own process)."""
+    from ff3d_tf.config import ConfigError
+    from ff3d_tf.data.av2.argoverse2 import Argoverse2FormatError
+    from ff3d_tf.data.files.point_file_errors import PointFileError
+    from ff3d_tf.data.wod.wod_format import WireFormatError
+    from ff3d_tf.data.wod_errors import FrameDecodeError
+    return FrameDecodeError, PointFileError, Argoverse2FormatError, WireFormatError, ConfigError
 
 
 def merge_counts(all_counts) -> dict:
@@ -54,7 +83,7 @@ def write_json(obj, path: str) -> str:
 def run_per_input(inputs: list[str], process: Callable[[str], dict], out_dir: str, job_name: str,
                   beam_args: list[str] | None = None, result_name: str | None = None) -> dict:
     """Runs `process` on every input in a Beam pipeline; returns the summed counts (also `<out_dir>/<result_name>`,
-    default `<job_name>_counts.json`)."""
+    default `<job_name>_counts.json`); raises `DataJobError` after the job when inputs failed (module docstring)."""
     import apache_beam as beam
     import tensorflow as tf
     from apache_beam.options.pipeline_options import PipelineOptions
@@ -68,7 +97,12 @@ def run_per_input(inputs: list[str], process: Callable[[str], dict], out_dir: st
             self.progress = Progress(total)
 
         def process(self, path):
-            counts = process(path)
+            try:
+                counts = process(path)
+            except input_errors() as err:  # the input fails alone, named once, after the job (module docstring)
+                _LOG.warning("%s: failed: %s (the job goes on with the other inputs)", job_name, path)
+                yield {FAILED_KEY: [f"{path}: {err}"]}
+                return
             for k, v in counts.items():
                 if isinstance(v, (int, float)):
                     beam.metrics.Metrics.counter(job_name, k).inc(int(v))
@@ -89,4 +123,7 @@ def run_per_input(inputs: list[str], process: Callable[[str], dict], out_dir: st
            | "Merge" >> beam.Map(merge_counts)
            | "Write" >> beam.Map(write_json, result_path))
     with tf.io.gfile.GFile(result_path) as f:
-        return json.load(f)
+        counts = json.load(f)
+    if counts.get(FAILED_KEY):
+        raise DataJobError(job_name, counts[FAILED_KEY], total, counts)
+    return counts

@@ -12,8 +12,14 @@ has no assert; `OnnxFlowPredictor` checks the poses on the host, with the same r
                                 float64 (`geometry.t0_from_tm1_np`) and applied in float32: no float64 tensor in the
                                 graph (TensorRT has none).
   outputs  flow_mps [N0,3] float32 (m/s, vehicle frame at t0; 0 where invalid), point_valid [N0] bool.
-A model of more sweeps (`data.num_frames`) takes every cloud, oldest first (points_tm2 before points_tm1), then
-every pose in the same order, or one t0_from_tm{k} per past sweep (`input_names`).
+A model of more sweeps (`data.num_frames`) takes every cloud in the order of its slots, the oldest slot first
+(points_tm2 before points_tm1), then every pose in the same order, or one t0_from_tm{k} per past sweep
+(`input_names`); for a model of Argoverse 2 challenge records (`data.partner=next`) points_tm1 is the NEXT sweep t+1
+(docs/deployment.md, "Several sweeps").
+
+Metadata (`METADATA_KEYS`): the variant and pose inputs, the order of the sweeps the model reads (`ff3d_partner`,
+`ff3d_temporal`: `OnnxFlowPredictor.order`) and the config the tools load when given the file (`ff3d_config`, YAML:
+`saved_config_yaml`).
 
 Variants (`VARIANTS`):
   "loop"          the point encoder in chunks of `ops.POINT_CHUNK` points, an ONNX `Loop` per cloud: memory bounded at
@@ -44,12 +50,15 @@ imports neither. The two op handlers use tf2onnx's internal graph API, so they l
 from __future__ import annotations
 
 import collections
+import json
 import logging
 
 import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import geometry, internals, schema
+from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.inference.predictor import with_model_partner
 from ff3d_tf.model import ops
 from ff3d_tf.model.fastflow3d import FastFlow3D
 from ff3d_tf.predictor import ServingPredictor, num_frames_of, serving_names
@@ -62,7 +71,10 @@ MIN_OPSET = 16  # ScatterElements' reduction attribute
 POINT_WIDTH = 5  # x, y, z, intensity, elongation
 OUTPUT_NAMES = ("flow_mps", "point_valid")
 CONTROL_FLOW_OPS = ("Loop", "If", "Scan")
-_METADATA_KEYS = ("ff3d_variant", "ff3d_pose_inputs")
+_METADATA_KEYS = ("ff3d_variant", "ff3d_pose_inputs")  # every file of this export has them
+ORDER_KEYS = {"partner": "ff3d_partner", "temporal": "ff3d_temporal"}  # the sweeps' order (`SweepOrder`)
+CONFIG_KEY = "ff3d_config"  # the config of the export, YAML (`saved_config_yaml`)
+METADATA_KEYS = _METADATA_KEYS + tuple(ORDER_KEYS.values()) + (CONFIG_KEY,)
 
 
 def input_names(pose_inputs: str, num_frames: int = 2) -> tuple[str, ...]:
@@ -176,25 +188,35 @@ def convert_function(fn, input_signature, opset: int = DEFAULT_OPSET):
     return proto
 
 
-def convert(model: FastFlow3D, variant: str = "loop", pose_inputs: str | None = None, opset: int = DEFAULT_OPSET):
-    """The ONNX ModelProto of `model`'s serving forward (see the module docstring), checked (`check_graph`)."""
+def convert(model: FastFlow3D, variant: str = "loop", pose_inputs: str | None = None, opset: int = DEFAULT_OPSET,
+            config_yaml: str | None = None):
+    """The ONNX ModelProto of `model`'s serving forward (see the module docstring), checked (`check_graph`), with the
+    metadata of `METADATA_KEYS` (`config_yaml`: the config's, when given)."""
     import onnx
     _check_choice("variant", variant, VARIANTS)
     pose_inputs = DEFAULT_POSE_INPUTS[variant] if pose_inputs is None else pose_inputs
     _check_choice("pose_inputs", pose_inputs, POSE_INPUTS)
     _check_opset(opset)  # before the twin is built and traced
     proto = convert_function(*serving_function(export_twin(model, variant), pose_inputs), opset)
-    onnx.helper.set_model_props(proto, dict(zip(_METADATA_KEYS, (variant, pose_inputs))))
+    props = {**dict(zip(_METADATA_KEYS, (variant, pose_inputs))), ORDER_KEYS["partner"]: model.partner,
+             ORDER_KEYS["temporal"]: model.temporal}
+    onnx.helper.set_model_props(proto, {**props, **({CONFIG_KEY: config_yaml} if config_yaml else {})})
     check_graph(proto, variant, pose_inputs)
     return proto
 
 
 def export_onnx(model: FastFlow3D, path: str, variant: str = "loop", pose_inputs: str | None = None,
-                opset: int = DEFAULT_OPSET) -> dict:
-    """Writes `model`'s serving forward as an ONNX file at `path`; returns {variant, pose_inputs, opset, inputs,
-    outputs, ops} (ops: `graph_ops` as "op": count)."""
+                opset: int = DEFAULT_OPSET, cfg: ExperimentConfig | None = None) -> dict:
+    """Writes `model`'s serving forward as an ONNX file at `path`, with the config it was restored with (`cfg`, its
+    partner the model's) in its metadata when given; returns {variant, pose_inputs, opset, inputs, outputs, ops}
+    (ops: `graph_ops` as "op": count)."""
     import onnx
-    proto = convert(model, variant, pose_inputs, opset)
+    import yaml
+    config_yaml = None
+    if cfg is not None:
+        tree = json.loads(json.dumps(with_model_partner(cfg, model).to_dict()))
+        config_yaml = yaml.safe_dump(tree, sort_keys=False)
+    proto = convert(model, variant, pose_inputs, opset, config_yaml)
     onnx.save(proto, path)
     meta = {p.key: p.value for p in proto.metadata_props}
     return {"path": path, "variant": variant, "pose_inputs": meta["ff3d_pose_inputs"], "opset": opset,
@@ -252,6 +274,16 @@ def check_graph(proto, variant: str, pose_inputs: str) -> None:
         raise ValueError(f"ONNX graph ({variant}) is not portable: " + "; ".join(problems))
 
 
+def saved_config_yaml(path: str) -> str | None:
+    """The config saved in the metadata of the ONNX file at `path` (YAML), None when it has none."""
+    import onnx
+    try:
+        proto = onnx.load(path, load_external_data=False)
+    except Exception as err:  # noqa: BLE001  (onnx raises protobuf's DecodeError, OSError, ...)
+        raise ValueError(f"{path}: not a readable ONNX file ({type(err).__name__})") from None
+    return {p.key: p.value for p in proto.metadata_props}.get(CONFIG_KEY)
+
+
 # -- running it with onnxruntime ------------------------------------------------------------------------------------
 
 class OnnxFlowPredictor(ServingPredictor):
@@ -279,6 +311,8 @@ class OnnxFlowPredictor(ServingPredictor):
         self.variant, self.pose_inputs = meta["ff3d_variant"], meta["ff3d_pose_inputs"]
         _check_choice(f"{path}: pose_inputs", self.pose_inputs, POSE_INPUTS)
         self.num_frames = num_frames_of([i.name for i in self.session.get_inputs()])
+        # The order of the sweeps the model reads as the file records it (`ff3d_tf.inference.predictor.sweep_order`)
+        self.recorded_order = {k: meta[key] for k, key in ORDER_KEYS.items() if key in meta}
 
     def feeds(self, *clouds_and_poses, **by_name) -> dict:
         """The session's inputs for one example (clouds oldest first, then their poses; or by name), after the

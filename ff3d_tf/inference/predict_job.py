@@ -1,16 +1,25 @@
 """A saved model's flow on pairs of clouds, written to a folder: the job of `tools/predict.py`.
 
-Inputs, each a source of `PairToPredict`s in order:
+Inputs, each a source of `PairToPredict`s in order, each built in the order of the sweeps the model reads
+(`ff3d_tf.inference.predictor.SweepOrder`: how many, and which sweep its t-1 slot holds) or refused before any work
+when it cannot be (`predictor.check_order`):
 - `WodSegment`: every pair of consecutive frames of a WOD segment TFRecord (`ff3d_tf.data.pairs.pair_dataset` under the
-  config given, its studies included); a segment without flow labels is predicted without ground truth;
-- `ExampleDataset`: the model input examples of a `tf.data.Dataset` that the caller makes (an Argoverse 2 log's
-  labelled pair comes from the labels pipeline, which this pipeline does not import);
-- `SweepsDirectory`: each two consecutive sweeps of a directory of the user's point files, with the directory's poses
-  if it has any (`ff3d_tf.data.files.point_files`: formats, intensity rule, poses);
-- `PointFilePair`: one pair of the user's point files, with both poses or neither.
+  config given, its studies included, read as WOD frames whatever `data.source` the model was trained on); a segment
+  without flow labels is predicted without ground truth; WOD pairs each frame with the previous one;
+- `ExampleDataset`: the model input examples of a `tf.data.Dataset` that the caller makes, in the order it says (an
+  Argoverse 2 log's labelled examples come from the labels pipeline, which this pipeline does not import);
+- `SweepsDirectory`: every sweep of a directory of the user's point files that has a partner, with the directory's
+  poses if it has any (`ff3d_tf.data.files.point_files`: formats, intensity rule, poses): for a model of the previous
+  sweep, each sweep after the first; for a model of the next sweep (Argoverse 2 challenge records), each sweep before
+  the last (`sequence_examples`). The sweeps a model of N sweeps reads before them are the directory's; at its start
+  the first sweep stands in for those it lacks (`schema.FULL_HISTORY_KEY` false), as evaluation reads a log. A sweep
+  further than `data.max_frame_gap_s` after the one before it (by `timestamps.txt`, else `sweep_period_s`) is an
+  error naming it, as `tools/write_pair_records.py --source files` says; with `data.skip_bad_records` the sweeps
+  each side of it are read as two sequences (the examples across it skipped and counted);
+- `PointFilePair`: one pair of the user's point files, with both poses or neither, for a model of 2 sweeps.
 The user's clouds are paired under `pairs.raw_pair_config` (every study off, no crop): each point of a t0 file gets
-one output row, in the file's order (points outside the grid: point_valid false, flow 0). Without poses the t-1 cloud
-is taken as already in the t0 vehicle frame. Their examples carry the pair's times (`pair_records.TIMESTAMP_KEY` and
+one output row, in the file's order (points outside the grid: point_valid false, flow 0). Without poses the past clouds
+are taken as already in the t0 vehicle frame. Their examples carry the pair's times (`pair_records.TIMESTAMP_KEY` and
 `PARTNER_TIMESTAMP_KEY`, ns): a sweeps directory's `timestamps.txt` (`ff3d_tf.data.files.sequences`), else one sweep
 every `sweep_period_s`; a predictor that needs the gap (NSFP's, whose flow is its motion over the gap) reads them.
 
@@ -22,10 +31,11 @@ caller gives: the labels pipeline's NSFP fit, which this pipeline does not impor
   ground truth (`ff3d_tf.viz.bev_flow_png`);
 and, given `rerun_path`, a Rerun recording of both clouds and the flow arrows of every pair on a `sweep` time line
 (`ff3d_tf.viz3d.FlowRecording`). A line of progress per file written and per pair goes to `log`.
+Every flow written is the velocity of the t0 points (m/s, t0 vehicle frame): a model of the next sweep predicts the
+motion from t+1 to t0 per second, minus the velocity, so its flow (and its examples' labels) are written negated.
 """
 from __future__ import annotations
 
-import collections
 import dataclasses
 import os
 from typing import Callable, Iterator
@@ -34,12 +44,13 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import viz, viz3d
-from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.config import ConfigError, ExperimentConfig, replace_config
 from ff3d_tf.data import pair_records, pairs
 from ff3d_tf.data.files import point_files, sequences
+from ff3d_tf.data.files.point_file_errors import PointFileError
 from ff3d_tf.data.wod import waymo
 from ff3d_tf.data.wod_errors import MissingFlowLabelsError
-from ff3d_tf.inference.predictor import load_predictor
+from ff3d_tf.inference.predictor import SweepOrder, check_order, load_predictor, sweep_order
 from ff3d_tf.predictor import Predictor
 
 Log = Callable[[str], None]
@@ -56,14 +67,15 @@ class PairToPredict:
     sweep_index: int  # index of the pair's t0 sweep (frame) in its input: its time step in a recording
     batch: dict  # the pair padded to its point bucket, a batch of one (model input, tensors)
     example: dict  # the same pair unpadded, NumPy (`ff3d_tf.schema` pair keys)
+    partner: str = "previous"  # the sweep its t-1 slot holds (`schema.PARTNERS`)
 
 
-def _dataset_pairs(source: str, make_examples: Callable[[], tf.data.Dataset], cfg: ExperimentConfig
-                   ) -> Iterator[PairToPredict]:
+def _dataset_pairs(source: str, make_examples: Callable[[], tf.data.Dataset], cfg: ExperimentConfig,
+                   partner: str) -> Iterator[PairToPredict]:
     """`frame_<i>` pairs of a dataset of examples; a bad record of `source` raises a FrameDecodeError naming it."""
     with pairs.input_errors_named([source]):
         for i, (batch, ex) in enumerate(pairs.padded_singletons(make_examples(), cfg.data.point_bucket_base)):
-            yield PairToPredict(f"frame_{i:04d}", i + 1, batch, {k: v.numpy() for k, v in ex.items()})
+            yield PairToPredict(f"frame_{i:04d}", i + 1, batch, {k: v.numpy() for k, v in ex.items()}, partner)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,7 +88,12 @@ class WodSegment:
     def label(self) -> str:
         return self.path
 
-    def pairs(self, cfg: ExperimentConfig, log: Log = print_line) -> Iterator[PairToPredict]:
+    def pairs(self, cfg: ExperimentConfig, log: Log = print_line, order: SweepOrder = SweepOrder()
+              ) -> Iterator[PairToPredict]:
+        check_order(order, "previous", self.path)  # WOD frames: each with the one before it
+        # Frames decoded here, whatever the model was trained on (pair records of WOD segments, too).
+        cfg = replace_config(cfg, {"data.source": "wod", "data.partner": None})
+
         def examples():
             first = next(waymo.iterate_records(self.path))[1]
             try:
@@ -86,19 +103,23 @@ class WodSegment:
                 inference_only = True
                 log(f"{self.path}: no flow labels; predicting without ground truth")
             return pairs.pair_dataset([self.path], cfg, inference_only=inference_only)
-        return _dataset_pairs(self.path, examples, cfg)
+        return _dataset_pairs(self.path, examples, cfg, "previous")
 
 
 @dataclasses.dataclass(frozen=True)
 class ExampleDataset:
-    """The examples of `make_examples()` (called when the pairs are read), shown and named as `label` (a path)."""
+    """The examples of `make_examples()` (called when the pairs are read), shown and named as `label` (a path), their
+    t-1 slot holding the `partner` sweep."""
     label: str
     make_examples: Callable[[], tf.data.Dataset]
+    partner: str = "previous"
     user_clouds = False
 
-    def pairs(self, cfg: ExperimentConfig, log: Log = print_line) -> Iterator[PairToPredict]:
+    def pairs(self, cfg: ExperimentConfig, log: Log = print_line, order: SweepOrder = SweepOrder()
+              ) -> Iterator[PairToPredict]:
         del log
-        return _dataset_pairs(self.label, self.make_examples, cfg)
+        check_order(order, self.partner, self.label)
+        return _dataset_pairs(self.label, self.make_examples, cfg, self.partner)
 
 
 class _Notes:
@@ -132,37 +153,82 @@ def _read_sweep(path: str, pose: np.ndarray | None, intensity_scale: float | Non
     return point_files.frame_from_columns(cols, pose, intensity_scale)
 
 
+@dataclasses.dataclass(frozen=True)
+class SequenceExample:
+    """One example of a sequence of sweeps: the sweep it predicts (`t0`) and the sweep of each slot, t0 first
+    (`schema.sweep_clouds`), with whether every past slot holds its own sweep (`schema.FULL_HISTORY_KEY`)."""
+    t0: int
+    slots: tuple[int, ...]
+    full_history: bool
+
+
+def sequence_examples(num_sweeps: int, num_frames: int, partner: str, breaks: tuple[int, ...] = ()
+                      ) -> list[SequenceExample]:
+    """The examples of a sequence of `num_sweeps` sweeps (0 the oldest) for a model of `num_frames` sweeps whose t-1
+    slot holds the `partner` sweep, every sweep that has one within its run: the sequence is read as separate runs
+    split before each index of `breaks` (a missing sweep). A run's first sweep stands in for the past sweeps it lacks.
+
+    partner "previous": sweep i in t0, i-1 in tm1, i-2, i-3, ... in tm2, tm3, ... (the first sweep of a run has none);
+    partner "next": sweep i in t0, i+1 in tm1, i-1, i-2, ... in tm2, tm3, ... (the last sweep of a run has none)."""
+    bounds = sorted({0, num_sweeps, *(b for b in breaks if 0 < b < num_sweeps)})
+    out = []
+    for start, stop in zip(bounds[:-1], bounds[1:]):
+        for i in range(start, stop):
+            partner_index = i - 1 if partner == "previous" else i + 1
+            if not start <= partner_index < stop:
+                continue
+            first_past = 2 if partner == "previous" else 1  # how far back the slot after the partner reaches
+            past = [i - k for k in range(first_past, first_past + num_frames - 2)]
+            out.append(SequenceExample(i, (i, partner_index, *(max(k, start) for k in past)),
+                                       all(k >= start for k in past)))
+    return out
+
+
 def _user_cloud_pairs(sweeps: list[str], poses: list[np.ndarray] | None, intensity_scale: float | None,
-                      cfg: ExperimentConfig, log: Log, timestamps_ns: list[int]) -> Iterator[PairToPredict]:
-    """An example of each `data.num_frames` consecutive point files of `sweeps` (a pair of each two for the paper's
-    model), named after its t0 (newest) file, under `raw_pair_config`, with the pair's times (`timestamps_ns`, one
-    per sweep). With N sweeps per example, the first N - 1 files get no prediction of their own."""
-    num_frames = cfg.data.num_frames
+                      cfg: ExperimentConfig, log: Log, timestamps_ns: list[int], plan: list[SequenceExample],
+                      partner: str) -> Iterator[PairToPredict]:
+    """The examples of `plan` (`sequence_examples`) over the point files `sweeps`, named after their t0 file, under
+    `raw_pair_config`, with the pair's times (`timestamps_ns`, one per sweep)."""
     if poses is None:
-        log(f"no poses: the {'t-1 cloud of each pair is' if num_frames == 2 else 'past clouds of each example are'} "
-            "taken as already in the t0 vehicle frame (no ego-motion compensation)")
-    if num_frames > 2:
-        log(f"data.num_frames={num_frames}: each prediction reads its sweep and the {num_frames - 1} before it; the "
-            f"first {num_frames - 1} sweeps get none of their own")
+        pair = bool(plan) and len(plan[0].slots) == 2
+        log(f"no poses: the {'t-1 cloud of each pair is' if pair else 'past clouds of each example are'} taken as "
+            "already in the t0 vehicle frame (no ego-motion compensation)")
     raw_cfg = pairs.raw_pair_config(cfg)
-    notes, previous = _Notes(log), collections.deque(maxlen=num_frames - 1)  # newest first
-    for i, path in enumerate(sweeps):
-        frame_t0 = _read_sweep(path, None if poses is None else poses[i], intensity_scale, notes)
-        if len(previous) == num_frames - 1:
-            ex = pairs.make_example([{k: tf.constant(v) for k, v in f.items()} for f in (frame_t0, *previous)],
-                                    raw_cfg, seed=tf.constant([1, 7]))
-            ex[pair_records.TIMESTAMP_KEY] = tf.constant(timestamps_ns[i], tf.int64)
-            ex[pair_records.PARTNER_TIMESTAMP_KEY] = tf.constant(timestamps_ns[i - 1], tf.int64)
-            for batch, example in pairs.padded_singletons(tf.data.Dataset.from_tensors(ex),
-                                                          cfg.data.point_bucket_base):
-                name = os.path.splitext(os.path.basename(path))[0]
-                yield PairToPredict(name, i, batch, {k: v.numpy() for k, v in example.items()})
-        previous.appendleft(frame_t0)
+    notes, frames = _Notes(log), {}
+    for item in plan:
+        for k in sorted(set(item.slots) - set(frames)):
+            frames[k] = _read_sweep(sweeps[k], None if poses is None else poses[k], intensity_scale, notes)
+        for k in [k for k in frames if k < min(item.slots)]:  # the plan only moves forward
+            del frames[k]
+        ex = pairs.make_example([{key: tf.constant(v) for key, v in frames[k].items()} for k in item.slots],
+                                raw_cfg, seed=tf.constant([1, 7]))
+        ex[pair_records.TIMESTAMP_KEY] = tf.constant(timestamps_ns[item.t0], tf.int64)
+        ex[pair_records.PARTNER_TIMESTAMP_KEY] = tf.constant(timestamps_ns[item.slots[1]], tf.int64)
+        for batch, example in pairs.padded_singletons(tf.data.Dataset.from_tensors(ex),
+                                                      cfg.data.point_bucket_base):
+            name = os.path.splitext(os.path.basename(sweeps[item.t0]))[0]
+            yield PairToPredict(name, item.t0, batch, {k: v.numpy() for k, v in example.items()}, partner)
+
+
+def sequence_breaks(sweeps: list[str], timestamps_ns: list[int], origin: str, cfg: ExperimentConfig, log: Log
+                    ) -> tuple[int, ...]:
+    """The indices of the sweeps further than `data.max_frame_gap_s` after the one before them (a missing sweep):
+    a PointFileError naming the first (its file, "timestamp") unless `data.skip_bad_records`, then each logged."""
+    max_gap_ns = cfg.data.max_frame_gap_s * 1e9
+    breaks = tuple(i for i in range(1, len(sweeps)) if timestamps_ns[i] - timestamps_ns[i - 1] > max_gap_ns)
+    for i in breaks:
+        err = PointFileError(sweeps[i], "timestamp", pair_records.missing_sweep(
+            timestamps_ns[i], timestamps_ns[i - 1], f"{os.path.basename(sweeps[i - 1])} ({origin})",
+            cfg.data.max_frame_gap_s))
+        if not cfg.data.skip_bad_records:
+            raise err
+        log(f"skipped: {err}")
+    return breaks
 
 
 @dataclasses.dataclass(frozen=True)
 class SweepsDirectory:
-    """Each two consecutive sweeps (by name) of a directory of the user's point files, with its poses if any."""
+    """Every sweep with a partner of a directory of the user's point files (by name), with its poses if any."""
     path: str
     intensity_scale: float | None = None  # None: the stored-type rule (`point_files.intensity_scale_of`)
     sweep_period_s: float = sequences.DEFAULT_SWEEP_PERIOD_S  # the sweep times without D/timestamps.txt
@@ -172,15 +238,35 @@ class SweepsDirectory:
     def label(self) -> str:
         return self.path
 
-    def pairs(self, cfg: ExperimentConfig, log: Log = print_line) -> Iterator[PairToPredict]:
+    def check(self, cfg: ExperimentConfig, log: Log = print_line) -> tuple:
+        """(sweeps, poses, times in ns, where the times come from, breaks): the directory's listing, its poses and
+        times checked (`sequence_breaks`) before any model is loaded or any point file read."""
         sweeps = point_files.list_sweeps(self.path)
         poses = point_files.sweep_poses(self.path, sweeps)
         stamps, origin = sequences.sweep_times_ns(self.path, len(sweeps), self.sweep_period_s)
-        n = cfg.data.num_frames
-        examples = f"{len(sweeps) - 1} pairs" if n == 2 else f"{max(len(sweeps) - n + 1, 0)} examples of {n} sweeps"
-        log(f"{self.path}: {len(sweeps)} sweeps, {examples}, {'poses given' if poses is not None else 'no poses'}")
+        return sweeps, poses, stamps, origin, sequence_breaks(sweeps, stamps, origin, cfg, lambda line: None)
+
+    def pairs(self, cfg: ExperimentConfig, log: Log = print_line, order: SweepOrder = SweepOrder()
+              ) -> Iterator[PairToPredict]:
+        sweeps, poses, stamps, origin, breaks = self.check(cfg)
         log(f"{self.path}: sweep times from {origin}")
-        return _user_cloud_pairs(sweeps, poses, self.intensity_scale, cfg, log, stamps)
+        sequence_breaks(sweeps, stamps, origin, cfg, log)  # (each break, logged)
+        partner = order.partner if order.partner_matters else "previous"  # the pair reads either side alike
+        plan = sequence_examples(len(sweeps), order.num_frames, partner, breaks)
+        n = order.num_frames
+        examples = f"{len(plan)} pairs" if n == 2 else f"{len(plan)} examples of {n} sweeps"
+        log(f"{self.path}: {len(sweeps)} sweeps, {examples}, {'poses given' if poses is not None else 'no poses'}")
+        without = sorted(set(range(len(sweeps))) - {e.t0 for e in plan})
+        if without:
+            why = "no earlier sweep" if partner == "previous" else \
+                "no next sweep: the model reads each sweep with the next one (Argoverse 2 challenge records)"
+            log(f"{self.path}: {len(without)} sweeps without a prediction of their own ({why}"
+                + (f"; {len(breaks)} of them beside a missing sweep" if breaks else "") + "): "
+                + ", ".join(os.path.basename(sweeps[i]) for i in without[:5]) + (" ..." if len(without) > 5 else ""))
+        if n > 2:
+            log(f"{self.path}: {sum(not e.full_history for e in plan)} examples read the sequence's first sweep for "
+                "past sweeps it lacks")
+        return _user_cloud_pairs(sweeps, poses, self.intensity_scale, cfg, log, stamps, plan, partner)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -202,15 +288,29 @@ class PointFilePair:
     def label(self) -> str:
         return self.points_t0
 
-    def pairs(self, cfg: ExperimentConfig, log: Log = print_line) -> Iterator[PairToPredict]:
-        if cfg.data.num_frames != 2:
-            raise ValueError(f"{self.points_t0}: a pair of point files serves a model of 2 sweeps; this one reads "
-                             f"data.num_frames={cfg.data.num_frames}: give a directory of sweeps (--sweeps_dir)")
+    def check(self, cfg: ExperimentConfig, log: Log = print_line) -> None:
+        """Both files and poses read and checked before any model is loaded (a bad file: `PointFileError`)."""
+        del cfg, log
+        for path in (self.points_tm1, self.points_t0):
+            point_files.read_point_file(path)
+        for pose in (self.pose_tm1, self.pose_t0):
+            if pose is not None:
+                point_files.read_pose(pose)
+
+    def pairs(self, cfg: ExperimentConfig, log: Log = print_line, order: SweepOrder = SweepOrder()
+              ) -> Iterator[PairToPredict]:
+        if order.num_frames != 2:
+            raise ConfigError(f"{self.points_t0}: a pair of point files serves a model of 2 sweeps; this one reads "
+                              f"{order.num_frames}: give a directory of sweeps (--sweeps_dir)")
+        if order.partner_matters and order.partner != "previous":
+            raise ConfigError(f"{self.points_t0}: the model reads each sweep with the NEXT one in its t-1 slot "
+                              f"(data.partner=next, {order.describe()}); a pair of files gives the sweep before "
+                              "t0: give a directory of sweeps (--sweeps_dir), which is read in the model's order")
         poses = None if self.pose_t0 is None else [point_files.read_pose(self.pose_tm1),
                                                    point_files.read_pose(self.pose_t0)]
         gap_ns = int(round(sequences.check_sweep_period(self.sweep_period_s) * 1e9))
         return _user_cloud_pairs([self.points_tm1, self.points_t0], poses, self.intensity_scale, cfg, log,
-                                 [0, gap_ns])
+                                 [0, gap_ns], sequence_examples(2, 2, "previous"), "previous")
 
 
 PairSource = WodSegment | ExampleDataset | SweepsDirectory | PointFilePair
@@ -231,11 +331,18 @@ def _write_pair(out_dir: str, pair: PairToPredict, flow_mps: np.ndarray, point_v
     return bool(np.any(ex["class_id_t0"] >= 0))
 
 
+def velocity_sign(partner: str) -> float:
+    """The factor that makes an example's flow (the motion from its partner cloud to t0 per second) the velocity of
+    the t0 points: 1 with the previous sweep, -1 with the next."""
+    return 1.0 if partner == "previous" else -1.0
+
+
 def predict(cfg: ExperimentConfig, checkpoint: str | None, source: PairSource, out_dir: str, png_every: int = 10,
             rerun_path: str | None = None, log: Log = print_line, predictor: Predictor | None = None) -> int:
-    """Predicts every pair of `source` with `predictor`, or else the model at `checkpoint` (`load_predictor`), and
-    writes the outputs of the module docstring; returns the number of pairs predicted. A missing Rerun extra raises
-    `viz3d.Viz3dUnavailableError` before any work; a bad point file raises `PointFileError` before the model loads."""
+    """Predicts every pair of `source` with `predictor`, or else the model at `checkpoint` (`load_predictor`, loaded
+    first: the source's examples are built in its order), and writes the outputs of the module docstring; returns
+    the number of pairs predicted. A missing Rerun extra raises `viz3d.Viz3dUnavailableError` before any work; a
+    source of another order than the model's a ConfigError (`check_order`); a bad point file `PointFileError`."""
     if predictor is None and not checkpoint:
         raise ValueError("predict needs a checkpoint (a model) or a predictor")
     if png_every < 1:
@@ -244,16 +351,23 @@ def predict(cfg: ExperimentConfig, checkpoint: str | None, source: PairSource, o
     if rerun_path:
         recording = viz3d.FlowRecording(rerun_path,
                                         recording_name=os.path.basename(os.path.normpath(source.label)))
+    if hasattr(source, "check"):  # what can be checked before the model loads
+        source.check(cfg, log)
+    if predictor is None:  # the model's own sweep order, whatever the config says (its restore checks the rest)
+        predictor = load_predictor(replace_config(cfg, {"data.partner": None}), checkpoint)
+    order = sweep_order(predictor)
     os.makedirs(out_dir, exist_ok=True)
-    if predictor is None and not source.user_clouds:
-        predictor = load_predictor(cfg, checkpoint)
     count = 0
-    for i, pair in enumerate(source.pairs(cfg, log)):
-        if predictor is None:  # the user's clouds: loaded once the first pair is read, so a bad file fails first
-            predictor = load_predictor(cfg, checkpoint)
+    for i, pair in enumerate(source.pairs(cfg, log, order)):
         flow, valid = predictor.predict(pair.batch, pair.example)
+        sign = velocity_sign(pair.partner)
+        if sign < 0 and count == 0:
+            log("the model reads each sweep with the next one: its flow (the motion from t+1 to t0 per second) is "
+                "written negated, the velocity of the t0 points")
+        flow = sign * np.asarray(flow)
+        ex = {**pair.example, "flow_mps_t0": sign * np.asarray(pair.example["flow_mps_t0"])}
+        pair = dataclasses.replace(pair, example=ex)
         has_labels = _write_pair(out_dir, pair, flow, valid, source.user_clouds, log)
-        ex = pair.example
         if i % png_every == 0:
             panels = {"prediction": np.where(valid[:, None], flow, 0.0)}
             if has_labels:

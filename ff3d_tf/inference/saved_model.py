@@ -3,7 +3,12 @@
 `serving_default(points_tm1 [N1,5], points_t0 [N0,5], pose_tm1 [4,4] float64, pose_t0 [4,4] float64)` where each
 cloud holds x, y, z, intensity, elongation in its own vehicle frame and poses are vehicle -> world (a model of more
 sweeps takes every cloud, oldest first, then every pose: `ff3d_tf.predictor.serving_names`). Returns
-`flow_mps` [N0,3] (m/s, vehicle frame at t0) and `point_valid` [N0] bool. One trace serves every N0, N1 (0 included):
+`flow_mps` [N0,3] (m/s, vehicle frame at t0) and `point_valid` [N0] bool. The clouds are in the order of the model's
+slots, oldest slot first: `points_tm{N-1}`, ..., `points_tm1`, `points_t0`. For a model of `data.partner=previous`
+(WOD, own sequences) that is every sweep oldest first; a model of Argoverse 2 challenge records
+(`data.partner=next`) reads the NEXT sweep t+1 as `points_tm1` (and t-1, t-2, ... as `points_tm2`, ...), and its
+flow is the motion from t+1 to t0 per second, minus the velocity. The module records that order (`partner`,
+`temporal`, read back by `SavedModelPredictor.order`). One trace serves every N0, N1 (0 included):
 point counts are padded inside to the buckets of `ff3d_tf.data.pairs.bucket_size`, and the XLA-compiled model runs once
 per bucket.
 
@@ -18,12 +23,17 @@ Inputs are checked inside the signature (so every client gets the same rules) an
 """
 from __future__ import annotations
 
+import os
+
 import tensorflow as tf
 
 from ff3d_tf import geometry, schema
+from ff3d_tf.checkpoints import CONFIG_NAME
+from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data.pairs import bucket_size_tf
 from ff3d_tf.model import plan as plan_lib
 from ff3d_tf.model.fastflow3d import FastFlow3D
+from ff3d_tf.inference.predictor import with_model_partner
 from ff3d_tf.predictor import ServingPredictor, num_frames_of, serving_names
 
 
@@ -41,6 +51,9 @@ class FlowServingModule(tf.Module):
         inline = bool(jit_compile)  # the whole forward in this XLA program: the model's stages inline
         self._infer = tf.function(lambda inputs: model(inputs, training=False, inline_stages=inline),
                                   jit_compile=jit_compile)
+        # The order of the sweeps the model reads (`ff3d_tf.inference.predictor.SweepOrder`), saved with it.
+        self.partner = tf.Variable(getattr(model, "partner", "previous"), trainable=False, name="partner")
+        self.temporal = tf.Variable(model.temporal, trainable=False, name="temporal")
         point_names, pose_names = serving_names(model.num_frames)
         self.serve = tf.function(self._serve, input_signature=(
             [tf.TensorSpec([None, 5], tf.float32, name=n) for n in point_names] +
@@ -71,13 +84,18 @@ class FlowServingModule(tf.Module):
         return {"flow_mps": out["flow_mps"][0, :n0], "point_valid": out["point_valid"][0, :n0]}
 
 
-def export_saved_model(model: FastFlow3D, path: str, bucket_base: int, jit_compile: bool = True) -> str:
+def export_saved_model(model: FastFlow3D, path: str, bucket_base: int, jit_compile: bool = True,
+                       cfg: ExperimentConfig | None = None) -> str:
     """Writes `model` as a SavedModel at `path` (signature serving_default) with the execution plan that computes it
-    (`path/execution_plan.json`)."""
+    (`path/execution_plan.json`) and, given the config it was restored with, that config with the model's partner
+    (`checkpoints.CONFIG_NAME`: the tools given this SavedModel load it)."""
     module = FlowServingModule(model, bucket_base, jit_compile)
     tf.saved_model.save(module, path, signatures={"serving_default": module.serve})
     plan_lib.save(model.plan, path)
+    if cfg is not None:
+        with_model_partner(cfg, model).save(os.path.join(path, CONFIG_NAME))
     return path
+
 
 
 class SavedModelPredictor(ServingPredictor):
@@ -93,6 +111,9 @@ class SavedModelPredictor(ServingPredictor):
         self.loaded = tf.saved_model.load(path)
         self.fn = self.loaded.signatures["serving_default"]
         self.num_frames = num_frames_of(self.fn.structured_input_signature[1])
+        # The order of the sweeps the model reads as the module records it (`ff3d_tf.inference.predictor.sweep_order`)
+        self.recorded_order = {k: getattr(self.loaded, k).numpy().decode() for k in ("partner", "temporal")
+                               if hasattr(self.loaded, k)}
         self.point_names, self.pose_names = serving_names(self.num_frames)
         self._specs = {**{n: (tf.float32, (None, 5)) for n in self.point_names},
                        **{n: (tf.float64, (4, 4)) for n in self.pose_names}}

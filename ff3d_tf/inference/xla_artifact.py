@@ -69,6 +69,9 @@ class XlaPredictor:
         self.export_dir = export_dir
         self.manifest = read_manifest(export_dir)
         self.num_frames = len(self.manifest["input_keys"]) // 3  # three inputs per sweep
+        self.path = export_dir
+        # The order of the sweeps the model reads as the export recorded it (`ff3d_tf.inference.predictor.sweep_order`)
+        self.recorded_order = {k: self.manifest[k] for k in ("partner", "temporal") if k in self.manifest}
         self.weights = load_weights(export_dir, self.manifest)
         by_size = {e["padded_points"]: e for e in self.manifest["artifacts"]
                    if e["batch_size"] == 1 and e["precision"] == precision}

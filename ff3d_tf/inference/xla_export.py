@@ -115,6 +115,7 @@ def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir:
     `reference`: also write TensorFlow's results for the first float32 artifact (`xla_export_dir.REFERENCE_NAME`).
     `variants` (names of VARIANTS): the same for each, at `variant_points` and `variant_precisions` (default `points`,
     `precisions`), listed under the manifest's "variants" and not among its artifacts (no predictor picks them).
+    The manifest also records the order of the sweeps the model reads ("partner", "temporal").
     Returns the manifest (also written as manifest.json).
     """
     xla_export_dir.check_precisions([*precisions, *variant_precisions])
@@ -122,6 +123,8 @@ def export_forward(cfg: ExperimentConfig, model, points: Sequence[int], out_dir:
     if not points or min(points) < 1:
         raise ValueError(f"points must be positive cloud sizes, got {list(points)}")
     manifest = xla_export_dir.new_export(cfg, model, out_dir, platforms, weights_source)
+    # The order of the sweeps the model reads (`ff3d_tf.inference.predictor.SweepOrder`; its count: "input_keys").
+    manifest.update(partner=getattr(model, "partner", "previous"), temporal=model.temporal)
     written: dict[str, int] = {}
 
     def write(tracer, precision: str, sizes: Sequence[int], file_name, entries: list, **extra) -> None:

@@ -7,15 +7,17 @@ Trainer's periodic evaluation (`evaluate` on a few pairs, `write_summaries` to T
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
+import shutil
 import time
 
 import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import geometry, metrics_av2, schema
-from ff3d_tf.config import ExperimentConfig, replace_config
+from ff3d_tf.config import ConfigError, ExperimentConfig, replace_config
 from ff3d_tf.data import pair_records, pairs
 from ff3d_tf.data.av2 import av2_submission
 from ff3d_tf.metrics import AV2_MAX_DISTANCE_M, CROP_PREFIX, SceneFlowMetrics, published_epe_keys
@@ -92,13 +94,13 @@ def challenge_flow_m(flow_mps, example: dict) -> np.ndarray:
 
 
 def _check_av2_records(cfg: ExperimentConfig, files: list[str]) -> None:
-    """Raises ValueError unless `files` are Argoverse 2 records paired with the next sweep, read as pair records."""
+    """Raises ConfigError unless `files` are Argoverse 2 records paired with the next sweep, read as pair records."""
     if cfg.data.source != "pair_records":
-        raise ValueError("the Argoverse 2 protocol reads pair records: --set data.source=pair_records and "
+        raise ConfigError("the Argoverse 2 protocol reads pair records: --set data.source=pair_records and "
                          "--data_dir of `tools/write_pair_records.py --source av2`")
     manifest = pair_records.manifest_of_files(list(files))
     if manifest.source != "av2" or manifest.partner != "next":
-        raise ValueError(f"{os.path.dirname(files[0])}: records of {manifest.source} paired with the "
+        raise ConfigError(f"{os.path.dirname(files[0])}: records of {manifest.source} paired with the "
                          f"{manifest.partner} sweep; the Argoverse 2 protocol needs Argoverse 2 records paired with "
                          "the next sweep (tools/write_pair_records.py --source av2)")
 
@@ -216,20 +218,6 @@ def evaluate_av2(cfg: ExperimentConfig, files: list[str], predictor: Predictor, 
             "points": f"official masks {masks}" if masks else "metrics_av2.eval_mask (not ground, 35 m box)"}
 
 
-class _Skipping:
-    """A predictor that leaves out the sweeps `skip` ({(log_id, timestamp_ns)}): zero flow, nothing predicted."""
-
-    def __init__(self, predictor: Predictor, skip: set):
-        self.predictor, self.skip = predictor, skip
-
-    def predict(self, batch, example):
-        if self.skip and _sweep_key({k: getattr(example[k], "numpy", lambda v=example[k]: v)() for k in (
-                pair_records.SEQUENCE_KEY, pair_records.TIMESTAMP_KEY)}) in self.skip:
-            n = int(example["num_points_t0"])
-            return np.zeros((n, 3), np.float32), np.ones(n, bool)
-        return self.predictor.predict(batch, example)
-
-
 def _submission_selection(lay, masks: str | None, archive) -> tuple[str, list[str]]:
     """What chooses a submission's sweeps and rows in layout `lay`, in words, and the notes a user must read."""
     if not lay.masks_choose_sweeps:
@@ -244,40 +232,29 @@ def _submission_selection(lay, masks: str | None, archive) -> tuple[str, list[st
         f"({av2_submission.MASKS_SOURCE})"]
 
 
-def _submission_resume_state(plan, parts: str) -> tuple[dict, dict, dict]:
-    """The plan's sweeps sorted by what an interrupted run left under `parts`: (expected {entry: rows} of those
-    written whose rows the plan knows, checked with the archive; todo {(log id, timestamp): sweep} of those not written
-    yet; kept {(log id, timestamp): sweep} of those written under av2-api's rule, checked when their pair is read)."""
-    expected, todo, kept = {}, {}, {}
+def _submission_resume_state(plan, parts: str, lay) -> tuple[dict, dict]:
+    """The plan's sweeps sorted by what an interrupted run of the same fingerprint left under `parts`: (expected
+    {entry: rows} of those written, the plan's rows where it knows them, else the file's; todo {(log id, timestamp):
+    sweep} of those not written yet)."""
+    expected, todo = {}, {}
     for p in plan:
-        if not os.path.exists(os.path.join(parts, *p.entry.split("/"))):
+        path = os.path.join(parts, *p.entry.split("/"))
+        if not os.path.exists(path):
             todo[(p.log_id, p.timestamp_ns)] = p
-        elif p.rows is not None:
-            expected[p.entry] = p.rows  # checked with the archive
-        else:
-            kept[(p.log_id, p.timestamp_ns)] = p
-    return expected, todo, kept
+        else:  # the rows of av2-api's rule are the same for the same records: the fingerprint says they are
+            expected[p.entry] = p.rows if p.rows is not None else \
+                len(av2_submission.read_sweep_file(path, lay)[lay.columns[0]])
+    return expected, todo
 
 
-def _write_submission_sweeps(cfg, files, predictor, lay, archive, parts: str, todo: dict, kept: dict, expected: dict,
+def _write_submission_sweeps(cfg, files, predictor, lay, archive, parts: str, todo: dict, expected: dict,
                              log_fn) -> None:
-    """Predicts and writes every sweep of `todo` under `parts` and checks the rows of every sweep of `kept`, adding
-    each one's entry and rows to `expected`; a planned sweep whose record is not read back is an error."""
-    for ex, flow_pred, _, _ in av2_challenge_examples(cfg, files, _Skipping(predictor, set(kept)), 0, log_fn,
-                                                      set(todo) | set(kept), inference_only=True):
+    """Predicts and writes every sweep of `todo` under `parts`, adding each one's entry and rows to `expected`; a
+    planned sweep whose record is not read back is an error."""
+    for ex, flow_pred, _, _ in av2_challenge_examples(cfg, files, predictor, 0, log_fn, set(todo),
+                                                      inference_only=True):
         key = _sweep_key(ex)
         points = ex["points_xyz_t0"]
-        if key in kept:  # av2-api's rule: the interrupted run's file must have the rule's rows
-            p = kept.pop(key)
-            path = os.path.join(parts, *p.entry.split("/"))
-            have = len(av2_submission.read_sweep_file(path, lay)[lay.columns[0]])
-            want = int(av2_submission.av2_api_rule_mask(points, ex["is_ground_t0"]).sum())
-            if have != want:
-                raise av2_submission.SubmissionFormatError(
-                    path, "rows", f"{have} rows, av2-api's rule selects {want}: written by an earlier run with "
-                    f"other masks; remove {parts} to write it again")
-            expected[p.entry] = have
-            continue
         p = todo.pop(key)
         rows = None
         if lay.mask_rows:
@@ -287,15 +264,28 @@ def _write_submission_sweeps(cfg, files, predictor, lay, archive, parts: str, to
         columns = av2_submission.sweep_columns(lay, points, challenge_flow_m(flow_pred, ex), ego1_from_ego0, rows)
         av2_submission.write_sweep(parts, lay, p.entry, columns)
         expected[p.entry] = len(columns[lay.columns[0]])
-    missing = {**todo, **kept}
-    if missing:
-        p = next(iter(missing.values()))
+    if todo:
+        p = next(iter(todo.values()))
         raise ValueError(f"{p.where}: the record of {p.log_id}/{p.timestamp_ns} was listed but not read back")
+
+
+def submission_fingerprint(cfg: ExperimentConfig, files: list[str], model: dict, leaderboard: str, split: str,
+                           masks: str | None) -> dict:
+    """What makes a submission's sweeps, as JSON (`av2_submission.claim_parts`): the model (`model`, the caller's
+    description of what predicts: its kind and the hash of its files), the resolved config, the records (their
+    manifest, and each file's name and size), the layout, the split and the masks (name and size)."""
+    manifest = dataclasses.asdict(pair_records.manifest_of_files(list(files)))
+    manifest.pop("written_by")
+    return {"model": model, "config": cfg.to_dict(), "leaderboard": leaderboard, "split": split,
+            "records": {"manifest": manifest,
+                        "files": [[os.path.basename(f), tf.io.gfile.stat(f).length] for f in files]},
+            "masks": None if masks is None else [os.path.basename(masks), os.path.getsize(masks)]}
 
 
 def write_av2_submission(cfg: ExperimentConfig, files: list[str], predictor: Predictor, out_zip: str,
                          leaderboard: str, split: str, masks: str | None = None, format_json: str | None = None,
-                         max_pairs: int = 0, supervised: bool = True, log_fn=print) -> dict:
+                         max_pairs: int = 0, supervised: bool = True, log_fn=print, model: dict | None = None
+                         ) -> dict:
     """An Argoverse 2 scene-flow submission of `predictor` over the records `files`, in the layout of `leaderboard`
     ("v1", "v2", "v3": `av2_submission.LAYOUTS`), zipped to `out_zip`, read back and checked before it is returned.
 
@@ -304,14 +294,20 @@ def write_av2_submission(cfg: ExperimentConfig, files: list[str], predictor: Pre
     av2-api's rule (`av2_submission.av2_api_rule_subset`, `av2_api_rule_mask`), for local validation only.
     `format_json`: av2-api's `{split}_submission_format.json`, whose entries (and, for v1, row counts) the archive
     must match. `supervised`: v2's metadata.json. `max_pairs`: the first planned sweeps only (a partial archive, a
-    check of the pipeline, never a submission). Sweeps already written under `<out_zip>.parts/` are kept (resume).
+    check of the pipeline, never a submission). `model`: what predicts, as JSON (the tool's: the model's kind and
+    the hash of its files; default the predictor's class).
+
+    The sweeps are written under `<out_zip>.parts/` with the run's fingerprint (`submission_fingerprint`): an
+    interrupted run resumes there, keeping its sweeps; a folder left by a run of another model, config, records,
+    layout or masks stops the job naming what differs (`av2_submission.claim_parts`). The folder is removed once
+    the archive is checked.
     Returns the archive's summary ({"sweeps", "rows", "logs"}) with "leaderboard", "selection" (what chose sweeps
     and rows), "partial" and "notes"."""
     lay = av2_submission.layout(leaderboard)
     if split not in ("val", "test"):
-        raise ValueError(f"split {split!r}: expected val or test")
+        raise ConfigError(f"split {split!r}: expected val or test")
     if masks is None and split == "test":
-        raise ValueError("a test submission needs the official masks (--masks TEST_MASKS.zip): the leaderboards "
+        raise ConfigError("a test submission needs the official masks (--masks TEST_MASKS.zip): the leaderboards "
                          f"evaluate their points only; {av2_submission.MASKS_SOURCE}")
     archive = av2_submission.MaskArchive(masks) if masks else None
     try:
@@ -329,11 +325,13 @@ def write_av2_submission(cfg: ExperimentConfig, files: list[str], predictor: Pre
                 format_rows = {e: n for e, n in format_rows.items() if e in {p.entry for p in plan}}
             av2_submission.check_against_format_json(lay, {p.entry: p.rows for p in plan}, format_rows, format_json)
         parts = out_zip + ".parts"
-        expected, todo, kept = _submission_resume_state(plan, parts)
+        av2_submission.claim_parts(parts, submission_fingerprint(
+            cfg, files, model or {"predictor": type(predictor).__name__}, lay.name, split, masks))
+        expected, todo = _submission_resume_state(plan, parts, lay)
         log_fn(f"{len(plan)} sweeps in layout {lay.name} ({lay.leaderboard}); {len(plan) - len(todo)} already "
-               f"written under {parts}")
+               f"written under {parts} by an interrupted run of the same model, config and records")
         t0 = time.time()
-        _write_submission_sweeps(cfg, files, predictor, lay, archive, parts, todo, kept, expected, log_fn)
+        _write_submission_sweeps(cfg, files, predictor, lay, archive, parts, todo, expected, log_fn)
         log_fn(f"{len(plan)} sweeps written in {time.time() - t0:.0f} s; zipping and checking {out_zip}")
         if format_rows is not None and lay.mask_rows:
             expected = format_rows  # Argoverse's validator: every entry of the JSON with its row count
@@ -341,6 +339,7 @@ def write_av2_submission(cfg: ExperimentConfig, files: list[str], predictor: Pre
     finally:
         if archive is not None:
             archive.close()
+    shutil.rmtree(parts)  # the archive holds them, checked
     return {**summary, "leaderboard": lay.name, "selection": selection, "partial": bool(max_pairs), "notes": notes}
 
 

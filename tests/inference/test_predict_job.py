@@ -105,12 +105,12 @@ def test_predict_writes_each_pair_and_a_png_every_png_every_pairs(tiny_checkpoin
                             str(tmp_path / "o2"), png_every=0)
 
 
-def test_a_bad_point_file_fails_before_the_model_loads(tmp_path):
+def test_a_bad_point_file_fails_naming_it(tmp_path, tiny_checkpoint):
     bad = _cloud(10)
     bad[3, 2] = np.inf
     np.save(tmp_path / "a.npy", _cloud(10))
     np.save(tmp_path / "b.npy", bad)
     with pytest.raises(PointFileError, match="z: non-finite value inf at point 3"):
-        predict_job.predict(load_config(None, TINY_OVERRIDES), str(tmp_path / "no_such_checkpoint"),
+        predict_job.predict(load_config(None, TINY_OVERRIDES), tiny_checkpoint,
                             predict_job.PointFilePair(str(tmp_path / "a.npy"), str(tmp_path / "b.npy")),
                             str(tmp_path / "out"), log=lambda line: None)

@@ -124,3 +124,35 @@ def test_xla_export_of_three_sweeps_equals_tensorflow(sequence_model, tmp_path):
                       keys["mask"]: np.ones((1, len(points)), bool)})
     flow, _ = predictor.predict(batch, {"num_points_t0": len(clouds[2])})
     np.testing.assert_allclose(flow, ref, atol=1e-4)
+
+
+@pytest.mark.slow  # three exports of a model: ~80 s (make test-docs-commands runs it)
+def test_a_model_of_the_next_sweep_records_its_order_in_every_export(tiny_config, tmp_path):
+    """A model of Argoverse 2 challenge records (data.partner=next: t+1 in its t-1 slot) keeps that order in the
+    SavedModel (its module, without any config beside it), the ONNX file (its metadata, with the config) and the
+    portable XLA export (manifest.json); each is refused for examples of the previous sweep, naming both orders,
+    and serves the clouds in its slots' order (points_tm2 = t-1, points_tm1 = t+1, points_t0)."""
+    pytest.importorskip("jax", reason="the xla extra (pip install .[xla]) provides jax")
+    import yaml
+    from ff3d_tf.inference.predictor import SweepOrder, sweep_order
+    from ff3d_tf.inference.xla_export import export_forward
+    cfg = replace_config(tiny_config, {"data.num_frames": 3, "model.temporal": "delta",
+                                       "data.source": "pair_records", "data.partner": "next"})
+    model = build_model(cfg, compile_mode="none")
+    assert model.partner == "next"
+    paths = {"saved_model": saved_model.export_saved_model(model, str(tmp_path / "sm"), cfg.data.point_bucket_base,
+                                                           jit_compile=False),
+             "onnx": str(tmp_path / "m.onnx"), "xla": str(tmp_path / "xla")}
+    onnx_export.export_onnx(model, paths["onnx"], "single_chunk", cfg=replace_config(cfg, {"data.partner": None}))
+    export_forward(cfg, model, (900,), paths["xla"], log=lambda _: None)
+    assert yaml.safe_load(onnx_export.saved_config_yaml(paths["onnx"]))["data"]["partner"] == "next"
+    previous = replace_config(cfg, {"data.partner": "previous"})
+    clouds = _clouds(4)  # in slot order, oldest slot first: t-1 (tm2), t+1 (tm1), t0
+    ref = _keras_flow(model, clouds)
+    for kind, path in paths.items():
+        predictor = load_predictor(cfg, path)
+        assert sweep_order(predictor) == SweepOrder(3, "next", "delta"), kind
+        with pytest.raises(ConfigError, match="trained with the next sweep .*these examples hold the previous"):
+            load_predictor(previous, path)
+        if kind != "xla":
+            np.testing.assert_allclose(np.asarray(predictor(*clouds, *POSES)["flow_mps"]), ref, atol=1e-4)

@@ -1,5 +1,6 @@
 """A checkpoint knows its config: a tool given a model_dir, a checkpoint prefix or a SavedModel directory and no
 --config loads the config saved with it (`tools/_common.load`) and says so; --config wins, --set still applies."""
+import json
 import os
 import subprocess
 import sys
@@ -100,6 +101,39 @@ def test_a_saved_model_directory_and_a_remote_model_dir(common, tiny_config, tmp
         _load(common, ["--model_dir", remote], "--model_dir")
 
 
+def test_a_job_that_runs_no_model_needs_no_model_temporal(common):
+    """data.num_frames=3 alone: a job that runs a model must say how its sweeps meet (model.temporal); a job that
+    runs none (records, pseudo-labels, NSFP) takes it as it is, any other fault still named."""
+    p = common.parser("a tool", PAPER)
+    args = p.parse_args(["--set", "data.num_frames=3"])
+    with pytest.raises(SystemExit, match="model.temporal=pair"):
+        common.load(args)
+    assert common.load(args, runs_model=False).data.num_frames == 3
+    with pytest.raises(SystemExit, match="data.num_frames=9"):
+        common.load(p.parse_args(["--set", "data.num_frames=9"]), runs_model=False)
+
+
+def test_an_onnx_file_carries_its_config(common, tiny_config, tmp_path, capsys):
+    """tools/export_onnx.py writes the config into the file's metadata (`onnx_export.CONFIG_KEY`): a tool given the
+    file and no --config loads it and says so; a file without one (an older export) leaves the default."""
+    import onnx
+    import yaml
+    from ff3d_tf.config import load_config
+    from ff3d_tf.inference import onnx_export
+    graph = onnx.helper.make_graph([onnx.helper.make_node("Identity", ["x"], ["y"])], "g",
+                                   [onnx.helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1])],
+                                   [onnx.helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1])])
+    proto = onnx.helper.make_model(graph)
+    onnx.save(proto, str(tmp_path / "bare.onnx"))
+    onnx.helper.set_model_props(proto, {onnx_export.CONFIG_KEY: yaml.safe_dump(
+        json.loads(json.dumps(tiny_config.to_dict())))})
+    onnx.save(proto, str(tmp_path / "m.onnx"))
+    assert _load(common, ["--checkpoint", str(tmp_path / "m.onnx")]) == tiny_config
+    assert capsys.readouterr().out == (f"config: the metadata of {tmp_path / 'm.onnx'}, the one saved with "
+                                       f"{tmp_path / 'm.onnx'} (--config chooses another)\n")
+    assert _load(common, ["--checkpoint", str(tmp_path / "bare.onnx")]) == load_config(PAPER)
+
+
 @pytest.mark.slow  # trains, then evaluates through the tool: ~70 s
 def test_eval_without_config_uses_the_models_own(tiny_segment, tiny_config, tmp_path):
     """The reported failure: eval given a model_dir trained with a non-default config and no --config stopped on
@@ -124,7 +158,7 @@ def test_eval_without_config_uses_the_models_own(tiny_segment, tiny_config, tmp_
     from ff3d_tf.checkpoints import saved_config
     from ff3d_tf.config import load_config
     assert saved_config(str(saved_model)) == str(saved_model / "config.yaml")
-    assert load_config(str(saved_model / "config.yaml")) == cfg
+    assert load_config(str(saved_model / "config.yaml")) == load_config(str(model_dir / "config.yaml"))
     # --config wins: the paper's model does not fit these weights, and the error names the model's own config.
     out = subprocess.run(command + ["--config", PAPER], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert out.returncode != 0 and "in the checkpoint but" in out.stderr, out.stderr[-3000:]

@@ -4,6 +4,7 @@ straight-line reference of the community evaluator in tests/test_metrics_av2.py)
 official masks, exactly their points. And submissions of synthetic Argoverse 2 logs in the three layouts over a mask
 archive in the official layout: sweeps, rows and order follow it, and the labels read back score 0."""
 import json
+import os
 import zipfile
 
 import numpy as np
@@ -230,17 +231,31 @@ def test_submission_refusals_and_resume(synthetic_split, tiny_config, tmp_path):
         write_av2_submission(cfg, files, _Labels(), out, "v1", "val", masks=masks, format_json=str(fmt),
                              log_fn=lambda s: None)
     assert e.value.path == f"{fmt}:{first[0]}/{first[1]}.feather"
-    # A rerun keeps what an earlier run wrote (resume) and checks it again.
-    fmt.write_text(json.dumps({f"{k[0]}/{k[1]}.feather": int(m.sum()) for k, m in official.items()}))
+    # A successful run leaves no folder of parts behind: the next run writes every sweep again.
+    assert not os.path.exists(out + ".parts")
+    # An interrupted run (here: its archive refused by the format JSON after every sweep was written) leaves its
+    # sweeps with its fingerprint.
+    fmt.write_text(json.dumps({f"{k[0]}/{k[1]}.feather": int(m.sum()) + 1 for k, m in official.items()}))
+    labels = {"kind": "labels"}
+    with pytest.raises(SubmissionFormatError, match="rows"):
+        write_av2_submission(cfg, files, _Labels(), out, "v1", "val", log_fn=lambda s: None, format_json=str(fmt),
+                             model=labels)
+    assert sorted(os.listdir(out + ".parts")) == sorted({"fingerprint.json", *(k[0] for k in official)})
+    # A run of another model, or over other masks, refuses that folder, naming what differs.
+    for other, differs in (({"model": {"kind": "another"}}, "model.kind"), ({"masks": masks}, "masks")):
+        with pytest.raises(SubmissionFormatError, match=f"written by another run \\({differs}:") as e:
+            write_av2_submission(cfg, files, _Labels(), out, "v1", "val", log_fn=lambda s: None,
+                                 **{"model": labels, **other})
+        assert e.value.path == os.path.join(out + ".parts", "fingerprint.json")
+    # The same run again keeps its sweeps (resume), then removes the folder.
     seen = []
-    write_av2_submission(cfg, files, _Labels(), out, "v1", "val", masks=masks, log_fn=seen.append)
+    write_av2_submission(cfg, files, _Labels(), out, "v1", "val", log_fn=seen.append, model=labels)
     assert any(f"{len(official)} already written" in s for s in seen), seen
-    # Without masks on val: av2-api's rule, with a loud note; the files the masks chose have other rows: named.
+    assert not os.path.exists(out + ".parts")
+    # Without masks on val: av2-api's rule, with a loud note.
     seen = []
-    with pytest.raises(SubmissionFormatError, match="av2-api's rule selects .* written by an earlier run") as e:
-        write_av2_submission(cfg, files, _Labels(), out, "v1", "val", log_fn=seen.append)
-    assert e.value.path.startswith(out + ".parts") and "local validation only" in seen[0]
     summary = write_av2_submission(cfg, files, _Labels(), str(tmp_path / "rule.zip"), "v1", "val",
-                                   log_fn=lambda s: None)
+                                   log_fn=seen.append)
+    assert "local validation only" in seen[0]
     assert summary["notes"] and "local validation only" in summary["notes"][0]
     assert summary["sweeps"] == len(official)  # the same every-5th subset the archive above holds

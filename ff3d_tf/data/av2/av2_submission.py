@@ -59,7 +59,9 @@ Sources:
      sweep that has a next sweep in its log)
 
 Files are written through a temporary name and renamed, so an interrupted job leaves whole files only.
-`make_archive` zips a folder and validates its own archive before it replaces the target.
+`make_archive` zips a folder and validates its own archive before it replaces the target. A folder of sweeps being
+written carries the fingerprint of what writes them (`claim_parts`: the model, the config, the records, the layout
+and the masks): a run resumes only the sweeps of its own fingerprint, and refuses a folder of another.
 """
 from __future__ import annotations
 
@@ -392,17 +394,62 @@ def read_sweep_file(path: str, lay: Layout) -> dict[str, np.ndarray]:
     return _check_table(data, path, lay, None)
 
 
+FINGERPRINT_NAME = "fingerprint.json"  # in a folder of sweeps being written: what writes them (`claim_parts`)
+
+
+def _differences(there, here, prefix: str = "") -> list[str]:
+    """The dotted keys whose values differ between two JSON trees, each with both values (short)."""
+    if isinstance(there, dict) and isinstance(here, dict):
+        return [d for k in sorted(set(there) | set(here))
+                for d in _differences(there.get(k), here.get(k), f"{prefix}.{k}" if prefix else k)]
+    if there == here:
+        return []
+    return [f"{prefix}: {json.dumps(there)[:80]} there, {json.dumps(here)[:80]} here"]
+
+
+def claim_parts(root: str, fingerprint: dict) -> None:
+    """Makes `root`, the folder of a submission's sweeps, for the run `fingerprint` describes (a JSON tree: what made
+    the sweeps), or checks that the folder an interrupted run left is that run's: a folder of another fingerprint, or
+    of none, is a SubmissionFormatError naming what differs (its sweeps are another model's flows, or flows of other
+    records: never kept)."""
+    path = os.path.join(root, FINGERPRINT_NAME)
+    wanted = json.loads(json.dumps(fingerprint))
+    if not os.path.isdir(root):
+        os.makedirs(root)
+    elif os.path.isfile(path):
+        try:
+            with open(path, encoding="utf-8") as f:
+                found = json.load(f)
+        except (OSError, ValueError):
+            found = None
+        if found != wanted:
+            differ = _differences(found, wanted) if isinstance(found, dict) else ["unreadable"]
+            raise SubmissionFormatError(path, "fingerprint", "the sweeps here were written by another run ("
+                                        + "; ".join(differ[:4]) + (f"; {len(differ) - 4} more" if len(differ) > 4
+                                                                    else "")
+                                        + f"): remove {root} to write them again, or give another --out")
+        return
+    elif os.listdir(root):
+        raise SubmissionFormatError(root, "fingerprint", f"a folder of sweeps without {FINGERPRINT_NAME}: not "
+                                    f"written by this tool's run; remove it, or give another --out")
+    with open(path + ".tmp", "w", encoding="utf-8") as f:
+        json.dump(wanted, f, indent=1, sort_keys=True)
+    os.replace(path + ".tmp", path)
+
+
 def make_archive(root: str, zip_path: str, lay: Layout, expected_rows: dict[str, int] | None = None,
                  supervised: bool = True, progress: Callable[[int, int], None] | None = None) -> dict[str, int]:
     """Zip the submission folder `root` (every file an entry of layout `lay` written by `write_sweep`; v2 adds
-    metadata.json with {"Is Supervised?": supervised}), validate the archive itself (`validate_archive`) and only then
-    move it to `zip_path`. Returns the validation summary; on a failure the error names the file and `zip_path` is
-    left as it was."""
+    metadata.json with {"Is Supervised?": supervised}; `FINGERPRINT_NAME` at its top is not archived), validate the
+    archive itself (`validate_archive`) and only then move it to `zip_path`. Returns the validation summary; on a
+    failure the error names the file and `zip_path` is left as it was."""
     entries = []
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames.sort()
         for fn in sorted(filenames):
             rel = os.path.relpath(os.path.join(dirpath, fn), root).replace(os.sep, "/")
+            if rel == FINGERPRINT_NAME:
+                continue
             if _entry_key(lay, rel) is None:
                 raise SubmissionFormatError(os.path.join(root, rel), "file", "unexpected file in the submission "
                                             f"folder: not an entry of layout {lay.name}")

@@ -5,6 +5,12 @@ pairs are those of `ff3d_tf.data.pairs.pair_dataset` under `pairs.raw_pair_confi
 reading them with any config gives the examples the decoding path gives with that config. Extras that the decoded
 frames do not hold (each point's labelled box, `instance_id_t0`) come from a caller's `add_extras`
 (`ff3d_tf.labels.pipeline.run_wod_records_job`: the box labels are the labelling pipeline's business).
+
+Counts of each segment, summed in the job's summary: `pairs` written; `skipped_pairs`, the examples the segment's
+frames would give (one per frame after the first) that `data.skip_bad_records` left out (across a missing or
+reordered frame, or beside a bad record); with `data.num_frames` > 2, `pairs_without_full_history`, the examples
+written whose history reaches before the segment's first frame (`schema.FULL_HISTORY_KEY` false: evaluation reads
+them, training does not).
 """
 from __future__ import annotations
 
@@ -16,6 +22,7 @@ from typing import Callable
 
 import tensorflow as tf
 
+from ff3d_tf import schema
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data import beam_job, pair_records, pairs
 
@@ -40,14 +47,17 @@ AddExtras = Callable[[str], Callable[[dict], dict]]
 
 def write_segment(in_path: str, out_dir: str, cfg: ExperimentConfig, manifest: pair_records.Manifest,
                   add_extras: AddExtras | None = None) -> dict:
-    """Writes the pair records of one segment; returns counts (pairs, points, bytes, seconds; already_done).
-    `add_extras(in_path)` gives each pair its `manifest.extras` (needed when the manifest lists any)."""
+    """Writes the pair records of one segment; returns counts (pairs, skipped_pairs, points, bytes, seconds; with
+    more than 2 sweeps pairs_without_full_history; already_done: see the module docstring). `add_extras(in_path)`
+    gives each pair its `manifest.extras` (needed when the manifest lists any)."""
     out_path = os.path.join(out_dir, pair_records.records_file_name(in_path))
     if tf.io.gfile.exists(out_path):
         _LOG.info("exists, skipped: %s", out_path)
         return {"already_done": 1}
     t0 = time.time()
-    counts = {"pairs": 0, "points_t0": 0, "points_tm1": 0}
+    counts = {"pairs": 0, "skipped_pairs": 0, "points_t0": 0, "points_tm1": 0}
+    if manifest.num_frames > 2:
+        counts["pairs_without_full_history"] = 0
     raw_cfg = pairs.raw_pair_config(cfg)
     if manifest.extras and add_extras is None:
         raise ValueError(f"the manifest lists extras {manifest.extras}: write_segment needs add_extras to give them")
@@ -61,16 +71,34 @@ def write_segment(in_path: str, out_dir: str, cfg: ExperimentConfig, manifest: p
                 if extras_of is not None:
                     ex.update(extras_of(ex))
                 counts["pairs"] += 1
+                if manifest.num_frames > 2 and not ex[schema.FULL_HISTORY_KEY]:
+                    counts["pairs_without_full_history"] += 1
                 counts["points_t0"] += int(ex["num_points_t0"])
                 counts["points_tm1"] += int(ex["num_points_tm1"])
                 yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras, manifest.num_frames)
 
     pair_records.write_records_atomically(out_path, records(), manifest.compression)
+    if cfg.data.skip_bad_records:  # (without it, a missing frame or a bad record stops the job)
+        counts["skipped_pairs"] = max(_readable_records(in_path) - 1 - counts["pairs"], 0)
+        if counts["skipped_pairs"]:
+            _LOG.warning("%s: %d examples skipped (data.skip_bad_records: across a missing or reordered frame, or "
+                         "beside a bad record)", in_path, counts["skipped_pairs"])
     counts["bytes"] = tf.io.gfile.stat(out_path).length
     counts["seconds"] = time.time() - t0
     _LOG.info("%s: %d pairs, %.1f MB, %.2f pairs/s", out_path, counts["pairs"], counts["bytes"] / 1e6,
               counts["pairs"] / max(counts["seconds"], 1e-9))
     return counts
+
+
+def _readable_records(path: str) -> int:
+    """The records of a TFRecord file that can be framed (a damaged file: those before the damage)."""
+    count = 0
+    try:
+        for _ in tf.data.TFRecordDataset(path):
+            count += 1
+    except tf.errors.OpError:
+        pass
+    return count
 
 
 def run_wod_job(files: list[str], out_dir: str, cfg: ExperimentConfig, precision: str = "exact",
