@@ -28,7 +28,8 @@ def boxes_of_frame(frame) -> dict:
     labels = [lb for lb in frame.laser_labels if lb.type in schema.OBJECT_CLASSES]
     return {"center": np.array([[lb.box.center_x, lb.box.center_y, lb.box.center_z] for lb in labels],
                                np.float64).reshape(-1, 3),
-            "size": np.array([[lb.box.length, lb.box.width, lb.box.height] for lb in labels], np.float64).reshape(-1, 3),
+            "size": np.array([[lb.box.length, lb.box.width, lb.box.height] for lb in labels],
+                             np.float64).reshape(-1, 3),
             "heading": np.array([lb.box.heading for lb in labels], np.float64),
             "track_id": np.array([lb.id for lb in labels], dtype=str),
             "class_id": np.array([lb.type for lb in labels], np.int32)}
@@ -56,21 +57,24 @@ def write_frames_as_sequence(records, directory: str, with_boxes: bool = True, l
     return len(clouds)
 
 
-def sequence_name(seed: int) -> str:
-    return f"sequence-synthetic-{seed:05d}"
+def sequence_name(seed: int, realism: str = "ideal") -> str:
+    return f"sequence-synthetic-{seed:05d}" if realism == "ideal" else f"sequence-synthetic-{realism}-{seed:05d}"
 
 
 def write_synthetic_sequences(out_dir: str, num_sequences: int = 2, sweeps_per_sequence: int = 20, seed: int = 0,
-                              lidar_scale: float = 1.0, with_boxes: bool = True, progress=None) -> list[str]:
+                              lidar_scale: float = 1.0, with_boxes: bool = True, progress=None,
+                              realism: str = "ideal") -> list[str]:
     """`num_sequences` sequences `<out_dir>/sequence-synthetic-<seed + k>` (sequence k: the synthetic WOD segment of
-    seed + k); a sequence that exists is kept (resumable). `progress(k, n, directory, skipped)` after each."""
+    seed + k, under the `realism` profile of `synthetic.realism`); a sequence that exists is kept (resumable).
+    `progress(k, n, directory, skipped)` after each."""
     out = []
     for k in range(num_sequences):
-        directory = os.path.join(out_dir, sequence_name(seed + k))
+        directory = os.path.join(out_dir, sequence_name(seed + k, realism))
         skipped = os.path.isdir(directory)
         if not skipped:
             spec = synthetic_wod.SegmentSpec(seed=seed + k, num_frames=sweeps_per_sequence,
-                                             name=f"synthetic-{seed + k:05d}", lidar_scale=lidar_scale)
+                                             name=os.path.basename(directory).removeprefix("sequence-"),
+                                             lidar_scale=lidar_scale, realism=realism)
             write_frames_as_sequence(synthetic_wod.generate_segment(spec), directory, with_boxes)
         out.append(directory)
         if progress is not None:

@@ -8,6 +8,10 @@ Ground truth comes from the simulator's own kinematics: per pixel, flow in the p
 motion t-1 -> t0 of the world point under the object's true rigid motion, in the vehicle frame at t0, ego motion
 removed); per tracked box, velocity and acceleration of its trajectory (`box_motion`). Speeds follow the paper's
 dataset figure (moving means near 5.6, 1.3 and 3.8 m/s for vehicles, pedestrians, cyclists).
+
+This is the default profile's world and scan (`realism.IDEAL`). The realistic profile builds on its parts: the city
+world (`synthetic.city`: agents on `traffic.Track`s, porous vegetation, the road's `ground` a height field) held in a
+`World`, and the timed scan of `synthetic.lidar` (`slab_interval`, `RaysByAzimuth` shared with `_raycast`).
 """
 from __future__ import annotations
 
@@ -18,8 +22,8 @@ import numpy as np
 from ff3d_tf import geometry, schema
 from ff3d_tf.data.wod import wod_format
 
-DT_S = 0.1  # frame interval
-TOP_MAX_RANGE_M = 75.0
+DT_S = 0.1  # frame interval (Waymo Open Dataset paper and Argoverse 2 paper: lidars at 10 Hz)
+TOP_MAX_RANGE_M = 75.0  # Waymo Open Dataset paper: the top lidar's range truncated to 75 m
 LABEL_RANGE_M = 75.0
 BOX_LIFT_M = 0.02  # agents float 2 cm above the ground: ground returns are never on a box face
 
@@ -40,18 +44,29 @@ class LidarSpec:
 
 
 class Road:
-    """Centreline by arc length: piecewise-constant curvature, tabulated every 0.1 m."""
+    """Centreline by arc length: piecewise-constant curvature, tabulated every 0.1 m.
 
-    def __init__(self, rng: np.random.Generator, s_min=-400.0, s_max=600.0):
+    `radius_range_m` bounds the curves' radii; with `max_heading_rad` (the city world) each curve after the first
+    turns back towards the road's heading at s = 0 and no further than that bound from it, so a long road never
+    winds back onto itself."""
+
+    def __init__(self, rng: np.random.Generator, s_min=-400.0, s_max=600.0, radius_range_m=(35.0, 90.0),
+                 max_heading_rad: float | None = None):
         self.ds = 0.1
         self.s = np.arange(s_min, s_max, self.ds)
         kappa = np.zeros_like(self.s)
-        start = 20.0
+        start, heading = 20.0, 0.0
         while start < s_max:
             length = rng.uniform(25.0, 60.0)
-            radius = rng.uniform(35.0, 90.0) * rng.choice([-1.0, 1.0])
+            radius = rng.uniform(*radius_range_m) * rng.choice([-1.0, 1.0])
+            if max_heading_rad is not None:
+                radius = abs(radius) * -np.sign(heading) if heading else radius
+                length = min(length, (max_heading_rad - heading * np.sign(radius)) * abs(radius))
+                heading += length / radius
             kappa[(self.s >= start) & (self.s < start + length)] = 1.0 / radius
             start += length + rng.uniform(30.0, 80.0)
+        self.kappa = kappa  # curvature (1/m) at each tabulated s
+        self.ground = None  # the ground's height field (`city.Terrain`); None: flat at z = 0
         i0 = int(np.argmin(np.abs(self.s)))
         theta = np.cumsum(kappa) * self.ds
         self.theta = theta - theta[i0]
@@ -66,6 +81,12 @@ class Road:
         x = np.interp(s, self.s, self.x) - d * np.sin(th)
         y = np.interp(s, self.s, self.y) + d * np.cos(th)
         return x, y, th
+
+    def ground_height(self, x, y) -> np.ndarray:
+        """World z of the ground under world (x, y) (arrays broadcast): 0 on the flat street world."""
+        if self.ground is None:
+            return np.zeros(np.broadcast(np.asarray(x), np.asarray(y)).shape)
+        return self.ground.height(x, y)
 
 
 @dataclasses.dataclass
@@ -84,17 +105,51 @@ class Agent:
     t_end: float = np.inf
     material: str = "vehicle"
     labelled: bool = True
+    # The city world (`synthetic.city`): a `traffic.Track` replaces s0 + speed t (z_bottom is then its lift above
+    # the ground), an Argoverse category other than its class's, and porous volumes (vegetation): the extinction
+    # coefficient of a ray inside (0: solid).
+    track: object = None
+    category: str | None = None
+    extinction_per_m: float = 0.0
+    _standing_pose: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
 
     def alive(self, t: float) -> bool:
         return self.t_start <= t <= self.t_end
 
     def pose(self, road: Road, t: float) -> tuple[np.ndarray, float]:
+        if self.track is not None:
+            centres, headings = self.track.poses(road, [t], self.size)
+            return centres[0], float(headings[0])
+        if self.speed == 0.0:  # a standing agent: computed once
+            if self._standing_pose is None:
+                x, y, th = road.pose(self.s0, self.d)
+                self._standing_pose = (np.array([x, y, self.z_bottom + self.size[2] / 2]),
+                                       th + (np.pi if self.reverse else 0.0))
+            return self._standing_pose[0].copy(), self._standing_pose[1]
         x, y, th = road.pose(self.s0 + self.speed * t, self.d)
         return np.array([x, y, self.z_bottom + self.size[2] / 2]), th + (np.pi if self.reverse else 0.0)
 
+    def poses(self, road: Road, times) -> tuple[np.ndarray, np.ndarray]:
+        """World box centres [M, 3] and headings [M] at `times` [M] (`pose` at each)."""
+        times = np.atleast_1d(np.asarray(times, np.float64))
+        if self.track is not None:
+            return self.track.poses(road, times, self.size)
+        x, y, th = road.pose(self.s0 + self.speed * times, self.d)
+        centres = np.stack([x, y, np.full(times.shape, self.z_bottom + self.size[2] / 2)], -1)
+        return centres, th + (np.pi if self.reverse else 0.0)
+
+    def moves(self) -> bool:
+        return self.track is not None or self.speed != 0.0
+
+    def max_speed_mps(self, road: Road) -> float:
+        """A bound on the speed of the box centre (m/s): along-road speed stretched by a curve's offset lanes."""
+        stretch = 1.0 + float(np.abs(road.kappa).max()) * (abs(self.d) + 5.0)
+        return (self.track.max_speed_mps() if self.track is not None else abs(self.speed)) * stretch
+
 
 MATERIAL_INTENSITY = {"ground": (0.08, 0.03), "building": (0.22, 0.06), "pole": (0.3, 0.05), "sign": (0.9, 0.05),
-              "vehicle": (0.45, 0.15), "pedestrian": (0.15, 0.05), "cyclist": (0.3, 0.08)}
+              "vehicle": (0.45, 0.15), "pedestrian": (0.15, 0.05), "cyclist": (0.3, 0.08),
+              "vegetation": (0.35, 0.1), "trunk": (0.2, 0.05)}
 
 
 def make_scene(rng: np.random.Generator, ego_speed_mps: float) -> tuple[Road, list[Agent]]:
@@ -195,8 +250,88 @@ def ego_pose(road: Road, t: float, ego_speed: float) -> np.ndarray:
     return ego_poses(road, [t], ego_speed)[0]
 
 
+@dataclasses.dataclass
+class World:
+    """What a generator draws from: the road, the agents, and the ego's motion (the street world: `ego_speed` in the
+    right lane, `ego_poses`; the city world, `synthetic.city`: a `traffic.Track`, yaw-only poses on the ground)."""
+
+    road: Road
+    agents: list
+    ego_speed: float = 0.0
+    ego_track: object = None
+    intersections: tuple = ()  # road s of the city world's intersections (side streets on both sides)
+    _coarse: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
+
+    def ego_poses(self, times) -> np.ndarray:
+        """Vehicle -> world [T, 4, 4] at `times` (s)."""
+        if self.ego_track is None:
+            return ego_poses(self.road, times, self.ego_speed)
+        times = np.atleast_1d(np.asarray(times, np.float64))
+        s, d, h = self.ego_track.path.at(self.ego_track.progress(times))
+        x, y, th = self.road.pose(s, d)
+        m = np.tile(np.eye(4), (times.size, 1, 1))
+        m[:, :3, :3] = wod_format.rotation_from_rpy(np.zeros_like(th), np.zeros_like(th), th + h)
+        m[:, 0, 3], m[:, 1, 3], m[:, 2, 3] = x, y, self.road.ground_height(x, y)
+        return m
+
+    def frame_scene(self, index: int, t: float) -> "FrameScene":
+        """`frame_scene` at time t with this world's ego pose. In the city world, only the agents whose coarse
+        track (every 0.5 s) comes within reach of the ego are posed exactly."""
+        pose = self.ego_poses([t])[0]
+        agents = self.agents
+        if self.ego_track is not None and self.agents:
+            agents = [self.agents[i] for i in self._within_reach(t, pose[:2, 3])]
+        return frame_scene(index, t, self.road, agents, self.ego_speed, pose)
+
+    def _within_reach(self, t: float, ego_xy: np.ndarray) -> np.ndarray:
+        if self._coarse is None:
+            times = self.ego_track.times[::10]
+            xy = np.empty((len(self.agents), len(times), 2))
+            for i, a in enumerate(self.agents):
+                xy[i] = a.poses(self.road, times)[0][:, :2] if a.moves() else a.pose(self.road, 0.0)[0][:2]
+            margin = np.array([np.linalg.norm(a.size) + a.max_speed_mps(self.road) * 0.5 for a in self.agents])
+            self._coarse = (times, xy, margin)
+        times, xy, margin = self._coarse
+        g = int(np.clip(np.searchsorted(times, t), 0, len(times) - 1))
+        g = g if g == 0 or abs(times[g] - t) < abs(times[g - 1] - t) else g - 1
+        dist = np.linalg.norm(xy[:, g] - ego_xy, axis=1)
+        return np.flatnonzero(dist < TOP_MAX_RANGE_M + margin + 5.0)
+
+
 def _wrap(angle):
     return (angle + np.pi) % (2 * np.pi) - np.pi
+
+
+def slab_interval(origins_box, dirs_box, half) -> tuple[np.ndarray, np.ndarray]:
+    """(t_near, t_far) [K] of rays [K, 3] in a box's own axes against the box of half extents `half` [3] (or [K, 3])
+    centred at the origin: the ray is inside for t_near <= t <= t_far (no crossing when t_far < t_near)."""
+    d = np.where(np.abs(dirs_box) < 1e-12, 1e-12, dirs_box)
+    t1, t2 = (-half - origins_box) / d, (half - origins_box) / d
+    return np.max(np.minimum(t1, t2), axis=1), np.min(np.maximum(t1, t2), axis=1)
+
+
+class RaysByAzimuth:
+    """Unit rays sorted by azimuth once, to find those whose horizontal projection can cross a circle."""
+
+    def __init__(self, dirs: np.ndarray):
+        self.count = dirs.shape[0]
+        ray_az = np.arctan2(dirs[:, 1], dirs[:, 0])
+        self.order = np.argsort(ray_az, kind="stable")
+        self.az_sorted = ray_az[self.order]
+
+    def candidates(self, rel_xy, radius: float) -> np.ndarray:
+        """Indices of the rays (from an origin near (0, 0)) whose azimuth lies within the circle of `radius` at
+        `rel_xy`; all rays when the origin is inside it."""
+        dist = float(np.hypot(*rel_xy))
+        if dist <= radius:
+            return np.arange(self.count)
+        mid, width = np.arctan2(rel_xy[1], rel_xy[0]), np.arcsin(radius / dist)
+        lo, hi = _wrap(mid - width), _wrap(mid + width)
+        order, az_sorted = self.order, self.az_sorted
+        if lo <= hi:
+            return order[np.searchsorted(az_sorted, lo):np.searchsorted(az_sorted, hi, "right")]
+        return np.concatenate([order[np.searchsorted(az_sorted, lo):],
+                               order[:np.searchsorted(az_sorted, hi, "right")]])
 
 
 def _raycast(origins, dirs, max_range, boxes, origin_spread_m=1.0):
@@ -214,34 +349,15 @@ def _raycast(origins, dirs, max_range, boxes, origin_spread_m=1.0):
         t_ground = np.where(dirs[:, 2] < -1e-9, -origins[:, 2] / dirs[:, 2], np.inf)
     ground = t_ground < max_range
     rng[ground], hit[ground] = t_ground[ground], -1
-    ray_az = np.arctan2(dirs[:, 1], dirs[:, 0])
-    order = np.argsort(ray_az, kind="stable")
-    az_sorted = ray_az[order]
+    by_azimuth = RaysByAzimuth(dirs)
     origin_xy = origins.mean(axis=0)[:2]
     for index, center, heading, half in boxes:
-        rel = center[:2] - origin_xy
-        dist = float(np.hypot(*rel))
-        radius = float(np.hypot(half[0], half[1])) + origin_spread_m
-        if dist <= radius:
-            cand = np.arange(k)
-        else:
-            mid, width = np.arctan2(rel[1], rel[0]), np.arcsin(radius / dist)
-            lo, hi = _wrap(mid - width), _wrap(mid + width)
-            if lo <= hi:
-                cand = order[np.searchsorted(az_sorted, lo):np.searchsorted(az_sorted, hi, "right")]
-            else:
-                cand = np.concatenate([order[np.searchsorted(az_sorted, lo):],
-                                       order[:np.searchsorted(az_sorted, hi, "right")]])
+        cand = by_azimuth.candidates(center[:2] - origin_xy, float(np.hypot(half[0], half[1])) + origin_spread_m)
         if cand.size == 0:
             continue
         c, s = np.cos(heading), np.sin(heading)
         rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # world -> box axes
-        o = (origins[cand] - center) @ rot.T
-        d = dirs[cand] @ rot.T
-        d = np.where(np.abs(d) < 1e-12, 1e-12, d)
-        t1, t2 = (-half - o) / d, (half - o) / d
-        t_near = np.max(np.minimum(t1, t2), axis=1)
-        t_far = np.min(np.maximum(t1, t2), axis=1)
+        t_near, t_far = slab_interval((origins[cand] - center) @ rot.T, dirs[cand] @ rot.T, half)
         ok = (t_far >= t_near) & (t_near > 0) & (t_near < rng[cand]) & (t_near < max_range)
         rng[cand[ok]], hit[cand[ok]] = t_near[ok], index
     return rng, hit
@@ -258,10 +374,10 @@ class FrameScene:
     labelled_now: set  # track ids with a laser label in this frame
 
 
-def frame_scene(index: int, t: float, road: Road, agents: list, ego_speed: float) -> FrameScene:
+def frame_scene(index: int, t: float, road: Road, agents: list, ego_speed: float, pose=None) -> FrameScene:
     """The scene of frame `index` at time `t`: agents alive and within lidar reach, those labelled (class > 0, within
-    LABEL_RANGE_M)."""
-    pose = ego_pose(road, t, ego_speed)
+    LABEL_RANGE_M). `pose`: the ego pose at t (default: the street world's, `ego_pose`)."""
+    pose = ego_pose(road, t, ego_speed) if pose is None else pose
     ego_xy = pose[:2, 3]
     alive = [a for a in agents if a.alive(t)]
     poses_t = {a.track_id: a.pose(road, t) for a in alive}
@@ -320,7 +436,12 @@ def column_time_offsets(width: int) -> np.ndarray:
 
 def top_pixel_pose(lidar: LidarSpec, road: Road, ego_speed: float, t: float) -> np.ndarray:
     """[H, W, 6] float32 roll, pitch, yaw, x, y, z of the ego pose at each TOP column's firing time."""
-    m = ego_poses(road, t + column_time_offsets(lidar.width), ego_speed)
+    return pixel_pose_of(lidar, ego_poses(road, t + column_time_offsets(lidar.width), ego_speed))
+
+
+def pixel_pose_of(lidar: LidarSpec, m: np.ndarray) -> np.ndarray:
+    """[H, W, 6] float32 range image pose (schema.TOP_POSE_CHANNELS) of the vehicle -> world poses [W, 4, 4] of the
+    columns."""
     r = m[:, :3, :3]
     rpy = np.stack([np.arctan2(r[:, 2, 1], r[:, 2, 2]), -np.arcsin(r[:, 2, 0]), np.arctan2(r[:, 1, 0], r[:, 0, 0])],
                    -1)
