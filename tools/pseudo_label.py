@@ -46,7 +46,7 @@ def main():
     _common.start("inference")  # before TensorFlow is imported
     from ff3d_tf.labels import pseudo_records
     args, beam_args = _args()
-    cfg = _common.load(args)  # a bad value exits naming its key, before any work
+    cfg = _common.load(args, runs_model=False)  # a bad value exits naming its key, before any work; no model runs
     try:
         files = pseudo_records.records_files(args.input)
     except FileNotFoundError as e:

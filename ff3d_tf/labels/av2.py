@@ -154,6 +154,8 @@ def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifes
         return {"already_done": 1}
     t0 = time.time()
     counts = {"pairs": 0, "points_t0": 0, "skipped_pairs": 0}
+    if manifest.num_frames > 2:  # the examples written whose history reaches before the log's first sweep
+        counts["pairs_without_full_history"] = 0
     stamps = argoverse2.sweep_timestamps(log_dir)
     num_sweeps = len(stamps)
     max_gap_ns = cfg.data.max_frame_gap_s * 1e9
@@ -186,6 +188,8 @@ def write_log_records(log_dir: str, out_dir: str, cfg: ExperimentConfig, manifes
                 continue
             counts["pairs"] += 1
             counts["points_t0"] += int(ex["num_points_t0"])
+            if manifest.num_frames > 2 and not ex[schema.FULL_HISTORY_KEY]:
+                counts["pairs_without_full_history"] += 1
             yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras, manifest.num_frames)
 
     pair_records.write_records_atomically(out_path, records(), manifest.compression)

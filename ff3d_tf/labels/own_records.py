@@ -174,10 +174,14 @@ def write_sequence_records(directory: str, out_dir: str, cfg: ExperimentConfig, 
         return {"already_done": 1}
     t0 = time.time()
     counts = {"pairs": 0, "points_t0": 0, "labelled_points_t0": 0, "skipped_pairs": 0}
+    if manifest.num_frames > 2:  # the examples written whose history reaches before the sequence's first sweep
+        counts["pairs_without_full_history"] = 0
 
     def records():
         for ex in sequence_examples(seq, cfg, options, counts):
             counts["pairs"] += 1
+            if manifest.num_frames > 2 and not ex[schema.FULL_HISTORY_KEY]:
+                counts["pairs_without_full_history"] += 1
             counts["points_t0"] += int(ex["num_points_t0"])
             counts["labelled_points_t0"] += int((ex["class_id_t0"] >= 0).sum()) if options.labels else 0
             yield pair_records.serialize_pair(ex, manifest.precision, manifest.extras, manifest.num_frames)

@@ -1,6 +1,7 @@
 """ONNX export (ff3d_tf/inference/onnx_export.py): onnxruntime against TensorFlow's serving forward, NaN points,
 empty clouds, determinism with 2 threads, the graph's ops, the conversion handlers against NumPy, the loop-free
-point encoder (ops.ONE_CHUNK) and tools/export_onnx.py; both variants with the GRU head (model.head=gru)."""
+point encoder (ops.ONE_CHUNK) and tools/export_onnx.py; both variants with DeFlow's GRU head (model.head=gru) and
+DeltaFlow's point head (model.head=mlp)."""
 import subprocess
 import sys
 
@@ -329,15 +330,36 @@ def exported_gru(tiny_config, tmp_path_factory):
     return {"model": model, "module": module, "info": info, "paths": paths}
 
 
+@pytest.fixture(scope="module")
+def exported_mlp(tiny_config, tmp_path_factory):
+    """The tiny model with DeltaFlow's point head (its BatchNorm's moving statistics moved off their initial values)
+    and both exports, as `exported_gru`."""
+    from ff3d_tf.config import replace_config
+    cfg = replace_config(tiny_config, {"model.head": "mlp"})
+    tmp = tmp_path_factory.mktemp("onnx_mlp")
+    model = build_model(cfg)
+    model.head_mlp.norm.moving_mean.assign(np.linspace(-0.3, 0.3, model.head_mlp.units).astype(np.float32))
+    model.head_mlp.norm.moving_variance.assign(np.linspace(0.5, 2.0, model.head_mlp.units).astype(np.float32))
+    paths = {v: str(tmp / f"{v}.onnx") for v in ox.VARIANTS}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(ops, "POINT_CHUNK", 256)
+        ox.export_onnx(model, paths["loop"], "loop")
+    info = ox.export_onnx(model, paths["single_chunk"], "single_chunk")
+    module = FlowServingModule(model, cfg.data.point_bucket_base, jit_compile=False)
+    return {"model": model, "module": module, "info": info, "paths": paths}
+
+
+@pytest.mark.parametrize("head", ["gru", "mlp"])
 @pytest.mark.parametrize("variant", ox.VARIANTS)
-def test_gru_head_onnxruntime_matches_tensorflow(exported_gru, variant):
-    predictor = ox.OnnxFlowPredictor(exported_gru["paths"][variant], intra_op_threads=2)
+def test_other_heads_onnxruntime_match_tensorflow(exported_gru, exported_mlp, head, variant):
+    exported = {"gru": exported_gru, "mlp": exported_mlp}[head]
+    predictor = ox.OnnxFlowPredictor(exported["paths"][variant], intra_op_threads=2)
     rng = np.random.default_rng(5)
     for n0, n1 in ((700, 650), (40, 900), (0, 30), (25, 0), (0, 0)):
         pts0, pts1 = _cloud(rng, n0), _cloud(rng, n1)
         pts0[np.arange(n0) % 9 == 4, 0] = np.nan
         pts1[np.arange(n1) % 11 == 2, 1] = np.inf
-        flow_tf, valid_tf = _tensorflow(exported_gru["module"], pts1, pts0)
+        flow_tf, valid_tf = _tensorflow(exported["module"], pts1, pts0)
         out = predictor(pts1, pts0, POSE_TM1, POSE_T0)
         flow, valid = out["flow_mps"], out["point_valid"]
         assert flow.shape == (n0, 3) and valid.shape == (n0,)

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import tensorflow as tf
 
-from ff3d_tf.config import replace_config
+from ff3d_tf.config import HEADS, replace_config
 from ff3d_tf.inference.saved_model import SavedModelPredictor, export_saved_model
 from ff3d_tf.model import build_model
 
@@ -15,7 +15,7 @@ def _pose(yaw, x):
     return m
 
 
-@pytest.mark.parametrize("head", ["paper", "gru"])
+@pytest.mark.parametrize("head", HEADS)
 def test_saved_model_round_trip(tiny_config, tmp_path, head):
     model = build_model(replace_config(tiny_config, {"model.head": head}))
     path = export_saved_model(model, str(tmp_path / "sm"), bucket_base=256)

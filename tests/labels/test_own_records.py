@@ -137,8 +137,9 @@ def test_records_of_three_sweeps_equal_the_wod_paths(tiny_segment, tiny_records,
     cfg = replace_config(tiny_config, {"data.num_frames": 3, "model.temporal": "delta"})
     wod_manifest = write_records.wod_manifest(cfg)
     pair_records.write_manifest(str(tmp_path / "wod"), wod_manifest)
-    write_records.write_segment(tiny_segment, str(tmp_path / "wod"), cfg, wod_manifest)
-    _own_records(sequence_dir, str(tmp_path / "own"), cfg, own_records.OwnRecordsOptions(labels=False))
+    wod_counts = write_records.write_segment(tiny_segment, str(tmp_path / "wod"), cfg, wod_manifest)
+    own_counts = _own_records(sequence_dir, str(tmp_path / "own"), cfg, own_records.OwnRecordsOptions(labels=False))
+    assert wod_counts["pairs_without_full_history"] == own_counts["pairs_without_full_history"] == 1  # the first
     wod, own = _examples(str(tmp_path / "wod")), _examples(str(tmp_path / "own"))
     assert len(own) == len(wod) == len(tiny_records) - 1
     assert [bool(o[schema.FULL_HISTORY_KEY]) for o in own] == [False] + [True] * (len(own) - 1)

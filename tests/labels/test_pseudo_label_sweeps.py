@@ -23,7 +23,8 @@ def test_records_of_three_sweeps_are_labelled_and_scored(tmp_path):
     records = str(tmp_path / "records")
     manifest = av2.records_manifest(cfg)
     pair_records.write_manifest(records, manifest)
-    assert av2.write_log_records(AV2_LOG, records, cfg, manifest)["pairs"] == 1
+    counts = av2.write_log_records(AV2_LOG, records, cfg, manifest)
+    assert counts["pairs"] == counts["pairs_without_full_history"] == 1  # 2 sweeps: sweep 0's history is its own
     out = tmp_path / "pseudo"
     run = subprocess.run([sys.executable, "tools/pseudo_label.py", "--input", records, "--out_dir", str(out),
                           *[a for s in SMALL_FIT for a in ("--set", s)]], cwd=ROOT, capture_output=True, text=True,
