@@ -9,6 +9,8 @@ python lab/tools/benchmark_sweeps.py [--out_dir sweeps_out] [--json benchmarks/s
     [--config configs/synthetic_cpu.yaml] [--set key=value ...]
 python lab/tools/benchmark_sweeps.py --summarize_again J: J's summaries made again from the per-seed figures it
     holds, by this code (after a change to what the summary says; no training)
+python lab/tools/benchmark_sweeps.py ... --collect: run nothing; gather what an earlier run of the same options (its
+    seeds and variants may be fewer) finished under --out_dir into --json
 python lab/tools/benchmark_sweeps.py --subset SRC DST full:K|filled:K: the pair records of SRC whose t0 sweep ranks
     at or after (full) or before (filled) K among its log's t0 sweeps, into DST (a stage of the benchmark)
 
@@ -60,6 +62,7 @@ def main():
     p.add_argument("--lidar_scale", type=float, default=0.12, help="WOD: < 1 shrinks the range images")
     p.add_argument("--av2_points_per_sweep", type=int, default=6000)
     p.add_argument("--summarize_again", metavar="JSON", help="rewrite this result's summaries; run nothing")
+    p.add_argument("--collect", action="store_true", help="run nothing: gather the finished stages' results")
     p.add_argument("--subset", nargs=3, metavar=("SRC", "DST", "PART:RANK"), help="write one part of pair records")
     args = p.parse_args()
     if args.subset:
@@ -93,8 +96,9 @@ def main():
         frames_per_segment=args.frames_per_segment, lidar_scale=args.lidar_scale,
         av2_points_per_sweep=args.av2_points_per_sweep, variants=variants, realistic=args.realistic)
     try:
-        sweeps_benchmark.run(options, os.path.abspath(args.out_dir), os.path.abspath(args.json), command)
-    except StageError as e:
+        sweeps_benchmark.run(options, os.path.abspath(args.out_dir), os.path.abspath(args.json), command,
+                             collect_only=args.collect)
+    except (StageError, ValueError) as e:
         sys.exit(f"benchmark_sweeps: {e}")
 
 

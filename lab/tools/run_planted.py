@@ -11,12 +11,13 @@ import sys
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.join(ROOT, "tools"))
 
-import _common  # noqa: E402,F401  (puts the repository root on sys.path; imports no TensorFlow)
+import _common  # noqa: E402  (puts the repository root on sys.path; imports no TensorFlow)
 
 from lab.training import planted_defects  # noqa: E402
 
 
 def main():
+    _common.start("train")  # before TensorFlow is imported; the lab measures the variants' accuracy, not their speed
     if len(sys.argv) < 2 or not sys.argv[1].endswith(".py"):
         sys.exit("usage: python lab/tools/run_planted.py TOOL.py [ARGS...]")
     planted_defects.run_tool(sys.argv[1], sys.argv[2:])

@@ -6,8 +6,8 @@ side of t0 the records' partner lies on, as the project computed it before it fo
 the history at once, so the history's terms point the other way; on WOD records it equals `delta`.
 
 `run_tool(tool, argv)` runs one of the project's tools in this process with the planted variants registered beside
-the product's: the tool's own start-up first (`_common.start`), then the registration (which imports TensorFlow),
-then the tool's `main()` with its start-up already done.
+the product's, after the caller's start-up (`lab/tools/run_planted.py`: `_common.start`): the registration (which
+imports TensorFlow), then the tool's `main()` with its start-up already done.
 """
 from __future__ import annotations
 
@@ -36,13 +36,12 @@ def register() -> None:
 
 
 def run_tool(tool: str, argv: list[str]) -> None:
-    """Runs `tool` (a path under tools/) as `python tool argv...` would, with `register` done first."""
+    """Runs `tool` (a path under tools/) as `python tool argv...` would, with `register` done first; the process's
+    start-up (`_common.start`) is done already."""
     tools_dir = os.path.dirname(os.path.abspath(tool))
     if tools_dir not in sys.path:
         sys.path.insert(0, tools_dir)
     import _common
-    job = "train" if os.path.basename(tool) == "train.py" else "inference"
-    _common.start(job)
     register()
     _common.start = lambda _job: {}  # the tool's own start-up call: done above, before TensorFlow was imported
     sys.argv = [tool, *argv]

@@ -31,9 +31,11 @@ JSON and logs `table`.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import statistics
 import time
+import types
 from typing import Callable
 
 from ff3d_tf import cpu
@@ -254,7 +256,8 @@ def format_summary(per_seed: dict, zero_flow: dict) -> dict:
 
 def instrument(rows: dict) -> dict:
     """Whether the planted defect (`PLANTED`) comes out worse than the corrected variant (`CORRECTED`) beyond the seeds'
-    spread, on each of `SEPARATION_FIGURES` (lower is better on each): `apart`'s figures and `planted_worse`."""
+    spread, on each of `SEPARATION_FIGURES` (lower is better on each): `apart`'s figures, `planted_worse`, and
+    `caught` (worse and apart, over 2 seeds or more)."""
     if PLANTED not in rows or CORRECTED not in rows:
         return {}
     out = {}
@@ -262,7 +265,9 @@ def instrument(rows: dict) -> dict:
         planted, corrected = rows[PLANTED][figure], rows[CORRECTED][figure]
         versus = apart(planted, corrected)
         worse = planted["mean"] is not None and corrected["mean"] is not None and planted["mean"] > corrected["mean"]
-        out[figure] = {**versus, "planted_worse": bool(worse), "caught": bool(worse and versus["apart"])}
+        seeds = min(planted["n"], corrected["n"])  # one seed has no spread to be apart by
+        out[figure] = {**versus, "planted_worse": bool(worse), "seeds": seeds,
+                       "caught": bool(worse and versus["apart"] and seeds >= 2)}
     return out
 
 
@@ -346,13 +351,32 @@ def table(result: dict) -> list[str]:
     return lines
 
 
+def recorded_seconds(plan: list[Stage], out_dir: str) -> dict:
+    """{stage: seconds} of the stages of `plan` whose record `ff3d_tf.stages` wrote under `out_dir` (they finished)."""
+    out = {}
+    for stage in plan:
+        path = f"{out_dir}/stages/{stage.name}.json"
+        if os.path.exists(path):
+            with open(path) as f:
+                out[stage.name] = float(json.load(f).get("seconds", 0.0))
+    return out
+
+
 def run(options: Options, out_dir: str, json_path: str, command: str, tools_dir: str = TOOLS_DIR,
-        log: Callable[[str], None] = print_line) -> dict:
+        log: Callable[[str], None] = print_line, collect_only: bool = False) -> dict:
     """Runs (or resumes) the stages under `out_dir`, writes the result to `json_path`, logs its `table` and returns
-    it. A stage that fails raises `ff3d_tf.stages.StageError`."""
+    it. A stage that fails raises `ff3d_tf.stages.StageError`. `collect_only`: runs nothing, and gathers what the
+    stages of `options` (its seeds, variants) wrote under `out_dir` in an earlier run (each must have finished)."""
     t0 = time.time()
     plan = stage_plan(options, out_dir, tools_dir)
-    stages = run_stages(plan, out_dir, log)
+    if collect_only:
+        seconds = recorded_seconds(plan, out_dir)
+        missing = [s.name for s in plan if s.name not in seconds]
+        if missing:
+            raise ValueError(f"{out_dir}: stages not finished: {', '.join(missing)}")
+        stages = types.SimpleNamespace(seconds=seconds, skipped=list(seconds))
+    else:
+        stages = run_stages(plan, out_dir, log)
     result = {
         "what": "models of 2, 3 and 5 sweeps (model.temporal pair, stack, delta) and a planted defect (delta of 5 "
                 "reversed) trained with several seeds on the same synthetic t0 sweeps, scored on held-out ones beside "

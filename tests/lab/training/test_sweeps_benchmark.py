@@ -145,3 +145,5 @@ def test_the_planted_defect_is_caught_only_when_worse_beyond_the_spread():
     better = sb.instrument(rows([1.5, 1.6, 1.7], [1.0, 1.1, 1.2]))["moving_mps"]
     assert better["apart"] and not better["planted_worse"] and not better["caught"]
     assert sb.instrument({sb.CORRECTED: {}}) == {}
+    one_seed = sb.instrument(rows([1.0], [2.0]))["moving_mps"]  # apart by 1.0 against no spread: not evidence
+    assert one_seed["planted_worse"] and one_seed["apart"] and not one_seed["caught"]
