@@ -24,12 +24,13 @@ from __future__ import annotations
 import collections
 import os
 import re
+import tempfile
 
 import keras
 import tensorflow as tf
 
 from ff3d_tf import internals
-from ff3d_tf.config import ExperimentConfig, load_config, replace_config
+from ff3d_tf.config import ConfigError, ExperimentConfig, load_config, replace_config
 from ff3d_tf.model import build_model
 from ff3d_tf.model.fastflow3d import model_definition
 
@@ -225,6 +226,20 @@ def saved_config(path: str) -> str | None:
     return None
 
 
+def load_saved_config(path: str) -> ExperimentConfig:
+    """The config file at `path` (local, gs:// or any `tf.io.gfile` filesystem), validated."""
+    with tempfile.TemporaryDirectory() as folder:
+        local = os.path.join(folder, os.path.basename(path))
+        try:
+            tf.io.gfile.copy(path, local)
+        except (tf.errors.OpError, OSError) as e:
+            raise ConfigError(f"cannot read config {path}: {e}") from e
+        try:
+            return load_config(local)
+        except ConfigError as e:
+            raise ConfigError(str(e).replace(local, path)) from None
+
+
 def with_model_definition(cfg: ExperimentConfig, path: str) -> ExperimentConfig:
     """`cfg` checked against the config saved with the model at `path` (`saved_config`; nothing to check without
     one): `CheckpointError` naming that file and each key of `model_definition` whose value differs (such a model
@@ -233,7 +248,7 @@ def with_model_definition(cfg: ExperimentConfig, path: str) -> ExperimentConfig:
     saved_path = saved_config(path)
     if saved_path is None:
         return cfg
-    saved = load_config(saved_path)
+    saved = load_saved_config(saved_path)
     if cfg.data.partner is None and saved.data.partner is not None:
         cfg = replace_config(cfg, {"data.partner": saved.data.partner})
     ours, theirs = model_definition(cfg), model_definition(saved)

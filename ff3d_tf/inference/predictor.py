@@ -30,7 +30,7 @@ import os
 import tensorflow as tf
 
 from ff3d_tf import schema, xla_export_dir
-from ff3d_tf.checkpoints import resolve_checkpoint, restore_model, saved_config
+from ff3d_tf.checkpoints import load_saved_config, resolve_checkpoint, restore_model, saved_config
 from ff3d_tf.config import ConfigError, ExperimentConfig, load_config, partner_matters, replace_config
 from ff3d_tf.model.forward import ModelPredictor
 from ff3d_tf.predictor import Predictor
@@ -75,7 +75,7 @@ def order_of_saved_config(path: str, num_frames: int, recorded: dict) -> SweepOr
     """An export's order: what it recorded itself (`recorded`: "partner", "temporal"), else the config saved with it
     (config.yaml in its folder, written by the export tools), else the pair's defaults."""
     saved = saved_config(path)
-    cfg = load_config(saved) if saved else None
+    cfg = load_saved_config(saved) if saved else None
     partner = recorded.get("partner") or (cfg.data.partner if cfg is not None else None) or DEFAULT_PARTNER
     temporal = recorded.get("temporal") or (cfg.model.temporal if cfg is not None else None) or \
         ("pair" if num_frames == 2 else "stack")

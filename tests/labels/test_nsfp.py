@@ -188,15 +188,16 @@ JOB_STOPPING = dict(patience=nsfp.MEASURED_FIT_OPTIONS.patience, min_delta=nsfp.
 @pytest.mark.parametrize("scene_seed", [0, 1, 2])
 def test_two_sided_fit_recovers_a_known_rigid_motion_with_the_project_sign_convention(scene_seed):
     """The job's two-sided fit (reverse correspondences every 5 steps) with the distance transform, on three scenes:
-    the rigid motion to < 0.05 m/frame on average over the object's points (its motion is ~0.63 m). Measured with the
-    job's stopping on scenes 0-2 x MLP seeds 0-1, on AVX-512 and on AVX2 (oneDNN and XLA capped to AVX2): 0.009-0.043
-    m, the walls 0.001-0.003 m."""
+    the rigid motion to < 0.1 m/frame on average over the object's points (its motion is ~0.63 m; the wrong sign
+    would be ~1.26 m off). Measured with the job's stopping on scenes 0-2 x MLP seeds 0-1, on AVX-512 and on AVX2
+    (oneDNN and XLA capped to AVX2): 0.009-0.043 m; on a real AMD Zen 3 (2 cores) scene 0 settles at 0.083 m, with
+    the code of before and after the change that found it; the walls 0.001-0.003 m."""
     points_t0, points_tm1_in_t0, motion_m = _rigid_scene(seed=scene_seed)
     options = dataclasses.replace(TINY, max_iterations=1000, reverse_every=5, **JOB_STOPPING)
     result = nsfp.nsfp_flow(points_t0, points_tm1_in_t0, DT_S, options)
     assert result.valid_t0.all() and 0 < result.num_iterations <= 1000
     error_m_per_frame = np.linalg.norm(result.flow_mps_t0 * DT_S - motion_m, axis=1)
-    assert error_m_per_frame[:NUM_OBJECT].mean() < 0.05, error_m_per_frame[:NUM_OBJECT].mean()
+    assert error_m_per_frame[:NUM_OBJECT].mean() < 0.1, error_m_per_frame[:NUM_OBJECT].mean()
     assert error_m_per_frame[NUM_OBJECT:].mean() < 0.05, error_m_per_frame[NUM_OBJECT:].mean()
     # +x, in m/s: the sign of the box labels, not the reverse motion
     assert result.flow_mps_t0[:NUM_OBJECT, 0].mean() > 5.0
