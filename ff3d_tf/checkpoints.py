@@ -226,8 +226,11 @@ def saved_config(path: str) -> str | None:
     return None
 
 
-def load_saved_config(path: str) -> ExperimentConfig:
-    """The config file at `path` (local, gs:// or any `tf.io.gfile` filesystem), validated."""
+def load_saved_config(path: str, overrides=()) -> ExperimentConfig:
+    """The config file at `path` (local, gs:// or any `tf.io.gfile` filesystem) with `key=value` `overrides`,
+    validated."""
+    if "://" not in path:
+        return load_config(path, overrides)
     with tempfile.TemporaryDirectory() as folder:
         local = os.path.join(folder, os.path.basename(path))
         try:
@@ -235,7 +238,7 @@ def load_saved_config(path: str) -> ExperimentConfig:
         except (tf.errors.OpError, OSError) as e:
             raise ConfigError(f"cannot read config {path}: {e}") from e
         try:
-            return load_config(local)
+            return load_config(local, overrides)
         except ConfigError as e:
             raise ConfigError(str(e).replace(local, path)) from None
 

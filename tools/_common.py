@@ -130,22 +130,12 @@ NO_MODEL_TEMPORAL = "stack"
 
 
 def _load_config(path: str | None, overrides):
-    """`load_config` of a local file, or of a copy of a remote one (gs://, ram://: a model_dir may be either)."""
-    from ff3d_tf.config import ConfigError, load_config
+    """`load_config` of a local file, or of a remote one (gs://, ram://: a model_dir may be either)."""
     if not path or "://" not in path:
+        from ff3d_tf.config import load_config
         return load_config(path, overrides)
-    import tempfile
-    import tensorflow as tf
-    with tempfile.TemporaryDirectory() as folder:
-        local = os.path.join(folder, os.path.basename(path))
-        try:
-            tf.io.gfile.copy(path, local)
-        except (tf.errors.OpError, OSError) as e:
-            raise ConfigError(f"cannot read config {path}: {e}") from e
-        try:
-            return load_config(local, overrides)
-        except ConfigError as e:
-            raise ConfigError(str(e).replace(local, path)) from None
+    from ff3d_tf.checkpoints import load_saved_config  # imports TensorFlow: after the start-up
+    return load_saved_config(path, overrides)
 
 
 def project_errors() -> tuple[type, ...]:

@@ -13,29 +13,34 @@ What the model (`m` below) asks of a fusion, in both forwards:
 """
 from __future__ import annotations
 
+import abc
 import tensorflow as tf
 
 from ff3d_tf import schema
 from ff3d_tf.model import ops
 
 
-class Fusion:
+class Fusion(abc.ABC):
     """The interface (module docstring). `frames`: the numbers of sweeps it reads, (min, max)."""
 
     name = ""
     frames = (2, schema.MAX_NUM_FRAMES)
 
+    @abc.abstractmethod
     def branches(self, num_frames: int) -> int:
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
+    @abc.abstractmethod
     def head_grid_count(self, num_frames: int) -> int:
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
+    @abc.abstractmethod
     def encode(self, m, grids, pillar_ids, point_valid, for_head: bool):
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
+    @abc.abstractmethod
     def head_grids(self, m, bev, extra: dict) -> list:
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
 
 class Stack(Fusion):

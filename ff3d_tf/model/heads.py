@@ -17,6 +17,7 @@ Layer names are the checkpoints' (`head_y`/`Y`, `head_z`/`Z`, `head_gru`/`gru`, 
 """
 from __future__ import annotations
 
+import abc
 import keras
 import tensorflow as tf
 
@@ -28,7 +29,7 @@ _PKG = "ff3d_tf"
 FLOW_WIDTH = 3  # flow (x, y, z) in m/s
 
 
-class Head:
+class Head(abc.ABC):
     """The interface (module docstring). `composes_with_v`: the head's first layer is linear in row V's output with
     nothing between them, so the plan may compose them (`plan.v_with_head`, `plan.decoder_chain`).
     `reads_pillar_grids`: its state reads the fusion's pillar grids (`Fusion.head_grids`)."""
@@ -37,29 +38,35 @@ class Head:
     composes_with_v = False
     reads_pillar_grids = False
 
+    @abc.abstractmethod
     def make_layers(self, m) -> None:
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
+    @abc.abstractmethod
     def build(self, m, head_grid_shapes: list) -> None:
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
+    @abc.abstractmethod
     def table(self, m, v, t0: dict, head_grids: list, training: bool):
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
     def point_projection(self, m):
         return None
 
+    @abc.abstractmethod
     def encoded(self, m, projected_t0, point_rows_t0) -> dict:
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
     def grid_stages(self, m, bev, training: bool):
         return m.dense_stages(bev, training)
 
+    @abc.abstractmethod
     def decode(self, m, grid, encoded: dict, head_grids: list, training: bool):
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
+    @abc.abstractmethod
     def table_rows(self, m) -> list[tuple[str, int]]:
-        raise NotImplementedError
+        """Each unit's own (the module docstring)."""
 
 
 class PaperHead(Head):
