@@ -29,7 +29,7 @@ import tempfile
 import keras
 import tensorflow as tf
 
-from ff3d_tf import internals
+from ff3d_tf import internals, schema
 from ff3d_tf.config import ConfigError, ExperimentConfig, load_config, replace_config
 from ff3d_tf.model import build_model
 from ff3d_tf.model.fastflow3d import model_definition
@@ -241,6 +241,13 @@ def load_saved_config(path: str, overrides=()) -> ExperimentConfig:
             return load_config(local, overrides)
         except ConfigError as e:
             raise ConfigError(str(e).replace(local, path)) from None
+
+
+def with_model_partner(cfg: ExperimentConfig, model) -> ExperimentConfig:
+    """`cfg` with `data.partner` the model's own (resolved from its checkpoint's config when `cfg` left it unset): the
+    config an export saves with it."""
+    partner = getattr(model, "partner", schema.DEFAULT_PARTNER)
+    return cfg if cfg.data.partner == partner else replace_config(cfg, {"data.partner": partner})
 
 
 def with_model_definition(cfg: ExperimentConfig, path: str) -> ExperimentConfig:

@@ -133,6 +133,7 @@ def sweep_clouds(num_frames: int) -> tuple[str, ...]:
 # the paper's pair), or "next", the sweep after it (Argoverse 2 challenge records, whose flow is scored from t0 to the
 # next sweep). The older slots tm2, tm3, ... hold t-1, t-2, ... with "next", t-2, t-3, ... with "previous".
 PARTNERS = ("previous", "next")
+DEFAULT_PARTNER = PARTNERS[0]  # records and models that say nothing of their partner: the paper's pair
 
 
 def slot_sweep_offsets(num_frames: int, partner: str) -> tuple[int, ...]:

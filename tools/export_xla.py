@@ -64,7 +64,7 @@ def main():
                                           reference=args.reference)
     except ValueError as e:
         p.error(str(e))
-    from ff3d_tf.inference.predictor import with_model_partner
+    from ff3d_tf.checkpoints import with_model_partner
     # the tools given this export load it (tools/_common.py), the model's partner in it (as in manifest.json)
     with_model_partner(cfg, model).save(os.path.join(args.out, "config.yaml"))
     print(f"wrote {len(manifest['artifacts'])} forward and {len(manifest['train_artifacts'])} training-step artifacts "

@@ -35,7 +35,7 @@ def check(root: str) -> tuple[list[str], list[Expected], list[tuple[Expected, st
         elif diffs := _differences(exp, targets[exp.name]):
             problems += [f"{exp.path}: {build} target {exp.name!r} {d}" for d in diffs]
             wrong.append((exp, "; ".join(diffs)))
-    return problems + _dangling(root, workspace.packages), missing, wrong
+    return problems + _dangling(root, workspace.packages) + _cycles(workspace.packages), missing, wrong
 
 
 def _differences(exp: Expected, target: dict) -> list[str]:
@@ -82,3 +82,29 @@ def _dangling(root: str, packages: dict[str, dict[str, dict]]) -> list[str]:
                     problems.append(f"{pkg}/BUILD target {name!r}: {label} names no target")
     return problems
 
+
+
+def _cycles(packages: dict[str, dict[str, dict]]) -> list[str]:
+    """Each cycle of first-party deps, named by its labels (Bazel refuses to analyse any target above one: a module
+    importing another lazily, inside a function, still needs it as a dep)."""
+    graph = {f"//{pkg}:{name}": [absolute_label(d, pkg) for d in target.get("deps", [])]
+             for pkg, targets in packages.items() for name, target in targets.items()}
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+    path: list[str] = []
+    problems = []
+
+    def visit(label: str) -> None:
+        state[label] = 1
+        path.append(label)
+        for dep in graph.get(label, ()):
+            if state.get(dep) == 1:
+                problems.append("cycle in the deps: " + " -> ".join(path[path.index(dep):] + [dep]))
+            elif dep in graph and dep not in state:
+                visit(dep)
+        path.pop()
+        state[label] = 2
+
+    for label in sorted(graph):
+        if label not in state:
+            visit(label)
+    return problems

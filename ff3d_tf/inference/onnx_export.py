@@ -57,8 +57,8 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import geometry, internals, schema
+from ff3d_tf.checkpoints import with_model_partner
 from ff3d_tf.config import ExperimentConfig
-from ff3d_tf.inference.predictor import with_model_partner
 from ff3d_tf.model import ops
 from ff3d_tf.model.fastflow3d import FastFlow3D
 from ff3d_tf.predictor import ServingPredictor, num_frames_of, serving_names

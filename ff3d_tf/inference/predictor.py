@@ -31,13 +31,11 @@ import tensorflow as tf
 
 from ff3d_tf import schema, xla_export_dir
 from ff3d_tf.checkpoints import load_saved_config, resolve_checkpoint, restore_model, saved_config
-from ff3d_tf.config import ConfigError, ExperimentConfig, load_config, partner_matters, replace_config
+from ff3d_tf.config import ConfigError, ExperimentConfig, load_config, partner_matters
 from ff3d_tf.model.forward import ModelPredictor
 from ff3d_tf.predictor import Predictor
 
 KINDS = ("onnx", "saved_model", "xla", "checkpoint")
-# What a model reads where nothing says otherwise: the paper's pair (an export or a predictor that records no order).
-DEFAULT_PARTNER = schema.PARTNERS[0]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,7 +43,7 @@ class SweepOrder:
     """The examples a model reads: `num_frames` sweeps, its t-1 slot holding the `partner` sweep of t0
     (`schema.PARTNERS`), the sweeps meeting as `temporal` says (`config.TEMPORALS`)."""
     num_frames: int = 2
-    partner: str = DEFAULT_PARTNER
+    partner: str = schema.DEFAULT_PARTNER
     temporal: str = "pair"
 
     def __post_init__(self):
@@ -68,7 +66,7 @@ class SweepOrder:
 
 def order_of_config(cfg: ExperimentConfig) -> SweepOrder:
     """The order of a model built from `cfg` (a config without `data.partner`: the default)."""
-    return SweepOrder(cfg.data.num_frames, cfg.data.partner or DEFAULT_PARTNER, cfg.model.temporal)
+    return SweepOrder(cfg.data.num_frames, cfg.data.partner or schema.DEFAULT_PARTNER, cfg.model.temporal)
 
 
 def order_of_saved_config(path: str, num_frames: int, recorded: dict) -> SweepOrder:
@@ -76,17 +74,10 @@ def order_of_saved_config(path: str, num_frames: int, recorded: dict) -> SweepOr
     (config.yaml in its folder, written by the export tools), else the pair's defaults."""
     saved = saved_config(path)
     cfg = load_saved_config(saved) if saved else None
-    partner = recorded.get("partner") or (cfg.data.partner if cfg is not None else None) or DEFAULT_PARTNER
+    partner = recorded.get("partner") or (cfg.data.partner if cfg is not None else None) or schema.DEFAULT_PARTNER
     temporal = recorded.get("temporal") or (cfg.model.temporal if cfg is not None else None) or \
         ("pair" if num_frames == 2 else "stack")
     return SweepOrder(num_frames, partner, temporal)
-
-
-def with_model_partner(cfg: ExperimentConfig, model) -> ExperimentConfig:
-    """`cfg` with `data.partner` the model's own (resolved from its checkpoint's config when `cfg` left it unset): the
-    config an export saves with it."""
-    partner = getattr(model, "partner", DEFAULT_PARTNER)
-    return cfg if cfg.data.partner == partner else replace_config(cfg, {"data.partner": partner})
 
 
 def sweep_order(predictor) -> SweepOrder:
@@ -97,7 +88,7 @@ def sweep_order(predictor) -> SweepOrder:
         return order_of_saved_config(predictor.path, predictor.num_frames, predictor.recorded_order)
     model = getattr(predictor, "model", None)
     if model is not None and hasattr(model, "num_frames"):
-        return SweepOrder(model.num_frames, getattr(model, "partner", DEFAULT_PARTNER), model.temporal)
+        return SweepOrder(model.num_frames, getattr(model, "partner", schema.DEFAULT_PARTNER), model.temporal)
     return SweepOrder()
 
 

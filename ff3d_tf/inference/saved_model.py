@@ -28,12 +28,11 @@ import os
 import tensorflow as tf
 
 from ff3d_tf import geometry, schema
-from ff3d_tf.checkpoints import CONFIG_NAME
+from ff3d_tf.checkpoints import CONFIG_NAME, with_model_partner
 from ff3d_tf.config import ExperimentConfig
 from ff3d_tf.data.pairs import bucket_size_tf
 from ff3d_tf.model import plan as plan_lib
 from ff3d_tf.model.fastflow3d import FastFlow3D
-from ff3d_tf.inference.predictor import with_model_partner
 from ff3d_tf.predictor import ServingPredictor, num_frames_of, serving_names
 
 

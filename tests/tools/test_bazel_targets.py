@@ -279,6 +279,15 @@ def test_only_slow_file_and_removed_source(tmp_path):
     assert "tools/half_written.py: cannot parse (invalid syntax" in out
 
 
+def test_dependency_cycle_is_named(tmp_path):
+    # helpers imports uses inside a function (a lazy import is still a dep): uses -> helpers -> uses.
+    root = _fake_tree(tmp_path)
+    _write(root, {"ff3d_tf/sub/helpers.py": "def twice(x):\n    from ff3d_tf.sub import uses\n    return 2 * x\n"})
+    rc, out = _check(root, "--fix")
+    assert rc == 1
+    assert "cycle in the deps: //ff3d_tf/sub:helpers -> //ff3d_tf/sub:uses -> //ff3d_tf/sub:helpers" in out, out
+
+
 def test_this_checkout_is_covered():
     rc, out = _check(CHECKOUT)
     assert rc == 0, out
