@@ -48,6 +48,12 @@ from ff3d_tf.training.input import loss_notice, training_dataset, training_files
 _LOG = logging.getLogger(__name__)
 
 
+def _history_rule(num_frames: int) -> str:
+    """Which examples of several sweeps train (`training.input` filters the others out), said once."""
+    return (f"with data.num_frames={num_frames} only examples whose every past slot holds its own sweep train (a "
+            f"log's first {num_frames - 2} examples read its first sweep instead and are left out)")
+
+
 def weights_fingerprint(model) -> str:
     """sha256 of every weight's bytes, in order: equal fingerprints mean bit-identical models (e.g. across workers)."""
     digest = hashlib.sha256()
@@ -106,6 +112,9 @@ class Trainer:
         self.log = log_fn if self.is_chief else (lambda s: log_fn(f"[worker] {s}"))
         if notice := loss_notice(self.train_files, cfg):
             self.log(notice)  # once, at start: the loss runs without a term its data lacks
+        if cfg.data.num_frames > 2:
+            self.log(_history_rule(cfg.data.num_frames) + "; the record job's summary counts them "
+                     "(pairs_without_full_history)")
         self._stop_signal = None
         self._last_saved_step = None
         self._steps_done = 0  # the last step this process finished (the watchdog's message)
@@ -311,9 +320,7 @@ class Trainer:
 
     def _no_batch(self, step: int) -> ConfigError:
         """The error of a training input that ends (it repeats, so it never had a whole batch)."""
-        history = (f"; with data.num_frames={self.cfg.data.num_frames} only examples whose every past slot holds its "
-                   f"own sweep train (a log's first {self.cfg.data.num_frames - 2} examples read its first sweep "
-                   "instead)") if self.cfg.data.num_frames > 2 else ""
+        history = f"; {_history_rule(self.cfg.data.num_frames)}" if self.cfg.data.num_frames > 2 else ""
         return ConfigError(f"the training input gave no batch at step {step}: the {len(self.train_files)} training "
                            f"files hold no example it can train on{history}")
 

@@ -156,3 +156,58 @@ def test_a_model_of_the_next_sweep_records_its_order_in_every_export(tiny_config
             load_predictor(previous, path)
         if kind != "xla":
             np.testing.assert_allclose(np.asarray(predictor(*clouds, *POSES)["flow_mps"]), ref, atol=1e-4)
+
+
+def _sequence(num_frames: int, seed: int):
+    """`num_frames` clouds, oldest first, each [N,5] in its own vehicle frame, and their poses (a car driving ~1 m per
+    sweep while turning)."""
+    rng = np.random.default_rng(seed)
+    clouds = [np.concatenate([rng.uniform([-35, -35, -1], [35, 35, 2], (n, 3)), rng.uniform(0, 1, (n, 2))],
+                             1).astype(np.float32) for n in rng.integers(240, 320, num_frames)]
+    poses = [_pose(0.3 + 0.02 * k, 1000.0 + 1.05 * k, -500.0 + 0.4 * k) for k in range(num_frames)]
+    return clouds, poses
+
+
+def _model_batch(clouds, poses):
+    """The model's inputs (slot order: t0, tm1, ...) for clouds and poses given oldest first: every cloud moved into
+    the t0 frame by NumPy."""
+    n, batch = len(clouds), {}
+    for k, cloud in enumerate(schema.sweep_clouds(n)):
+        points, keys = clouds[n - 1 - k], schema.cloud_keys(cloud)
+        xyz = points[:, :3] if k == 0 else geometry.transform_points_np(
+            points[:, :3], geometry.t0_from_tm1_np(poses[-1], poses[n - 1 - k])).astype(np.float32)
+        batch.update({keys["xyz"]: xyz[None], keys["features"]: points[None, :, 3:],
+                      keys["mask"]: np.ones((1, len(points)), bool)})
+    return batch
+
+
+@pytest.mark.slow  # four exports of each of four models: minutes
+@pytest.mark.parametrize("temporal,num_frames", [("delta", 3), ("delta", 5), ("stack", 3), ("stack", 5)])
+def test_every_export_of_the_recipes_head_equals_tensorflow(tiny_config, tmp_path, temporal, num_frames):
+    """The multi-sweep recipes' model (DeltaFlow's point head, its BatchNorm statistics set away from the identity so
+    that a runtime that dropped them would differ) through the SavedModel, both ONNX variants and the portable XLA
+    export: each gives the Keras model's flow, to float32 rounding."""
+    pytest.importorskip("jax", reason="the xla extra (pip install .[xla]) provides jax")
+    from ff3d_tf.inference.xla_artifact import XlaPredictor
+    from ff3d_tf.inference.xla_export import export_forward
+    cfg = replace_config(tiny_config, {"data.num_frames": num_frames, "model.temporal": temporal,
+                                       "model.head": "mlp"})
+    model = build_model(cfg, compile_mode="none")
+    model.head_mlp.norm.moving_mean.assign(np.linspace(-0.3, 0.3, model.head_mlp.units).astype(np.float32))
+    model.head_mlp.norm.moving_variance.assign(np.linspace(0.5, 2.0, model.head_mlp.units).astype(np.float32))
+    clouds, poses = _sequence(num_frames, seed=num_frames)
+    batch = _model_batch(clouds, poses)
+    ref = model(batch)["flow_mps"][0].numpy()
+    got = {}
+    sm = saved_model.SavedModelPredictor(saved_model.export_saved_model(
+        model, str(tmp_path / "sm"), cfg.data.point_bucket_base, jit_compile=False))
+    got["saved_model"] = sm(*clouds, *poses)["flow_mps"].numpy()
+    for variant in onnx_export.VARIANTS:
+        path = str(tmp_path / f"{variant}.onnx")
+        onnx_export.export_onnx(model, path, variant)
+        got[variant] = onnx_export.OnnxFlowPredictor(path)(*clouds, *poses)["flow_mps"]
+    export_forward(cfg, model, (2048,), str(tmp_path / "xla"), log=lambda _: None)
+    got["xla"] = XlaPredictor(str(tmp_path / "xla")).predict(batch, {"num_points_t0": len(clouds[-1])})[0]
+    assert np.abs(ref).max() > 1e-3  # a flow to compare, not zeros
+    for kind, flow in got.items():
+        np.testing.assert_allclose(np.asarray(flow), ref, atol=1e-4, err_msg=kind)
