@@ -41,8 +41,11 @@ from typing import Sequence
 import numpy as np
 
 from ff3d_tf import xla_program
-from ff3d_tf.schema import CLASS_NAMES, CLASS_NO_LABEL, model_input_keys
+from ff3d_tf.schema import (CLASS_NAMES, CLASS_NO_LABEL, DYNAMIC_CLUSTER_GROUND, DYNAMIC_CLUSTER_KEY_FORMAT, MAX_NUM_FRAMES,
+                            model_input_keys, sweep_clouds)
 from ff3d_tf.xla_program import ExportFormatError  # noqa: F401  (this module's callers catch it from here)
+
+DYNAMIC_CLUSTER_KEYS = frozenset(DYNAMIC_CLUSTER_KEY_FORMAT.format(cloud=c) for c in sweep_clouds(MAX_NUM_FRAMES))
 
 FORMAT = "ff3d_tf.xla_forward/1"
 MANIFEST_NAME = "manifest.json"
@@ -119,15 +122,27 @@ def random_clouds(rng: np.random.Generator, points: int, padded_points: int, bou
     return dict(zip(model_input_keys(num_frames), arrays))
 
 
-def random_labels(rng: np.random.Generator, points: int, padded_points: int, batch_size: int = 1) -> dict:
-    """Labels of `random_clouds`' t0 clouds: flow_mps_t0 float32 [B,P,3] uniform in [-10, 10] m/s and class_id_t0
-    int32 [B,P] uniform in -1..4 on the real points; zero flow and class -1 (no label) on the padding."""
+def random_labels(rng: np.random.Generator, points: int, padded_points: int, batch_size: int = 1,
+                  keys: Sequence[str] = ("flow_mps_t0", "class_id_t0")) -> dict:
+    """Labels of `random_clouds`' clouds, one array per key of `keys`: flow_mps_t0 float32 [B,P,3] uniform in
+    [-10, 10] m/s and class_id_t0 int32 [B,P] uniform in -1..4 on the real points, zero flow and class -1 (no label) on
+    the padding; a self-supervision field of any cloud (`schema.DYNAMIC_CLUSTER_KEY_FORMAT`) int32 [B,P] uniform from
+    ground (-2) to cluster 4 on the real points, ground on the padding."""
     b, n, p = batch_size, points, padded_points
-    flow = np.zeros((b, p, 3), np.float32)
-    flow[:, :n] = rng.uniform(-10.0, 10.0, (b, n, 3))
-    class_id = np.full((b, p), CLASS_NO_LABEL, np.int32)
-    class_id[:, :n] = rng.integers(CLASS_NO_LABEL, max(CLASS_NAMES) + 1, (b, n))
-    return {"flow_mps_t0": flow, "class_id_t0": class_id}
+    out = {}
+    for key in keys:
+        if key == "flow_mps_t0":
+            out[key] = np.zeros((b, p, 3), np.float32)
+            out[key][:, :n] = rng.uniform(-10.0, 10.0, (b, n, 3))
+        elif key == "class_id_t0":
+            out[key] = np.full((b, p), CLASS_NO_LABEL, np.int32)
+            out[key][:, :n] = rng.integers(CLASS_NO_LABEL, max(CLASS_NAMES) + 1, (b, n))
+        elif key in DYNAMIC_CLUSTER_KEYS:
+            out[key] = np.full((b, p), DYNAMIC_CLUSTER_GROUND, np.int32)
+            out[key][:, :n] = rng.integers(DYNAMIC_CLUSTER_GROUND, 5, (b, n))
+        else:
+            raise ValueError(f"no made-up values for the label {key!r}")
+    return out
 
 
 # -- writing (TensorFlow side) --------------------------------------------------------------------------------------

@@ -190,8 +190,10 @@ def _top_k_per_segment(values, segment, num_segments, k: int):
     starts = tf.cumsum(sizes, exclusive=True)
     rank = tf.range(tf.size(segment)) - tf.gather(starts, sorted_segment)
     keep = (rank < k) & (sorted_segment < num_segments)
-    where = tf.stack([tf.boolean_mask(sorted_segment, keep), tf.boolean_mask(rank, keep)], -1)
-    return tf.tensor_scatter_nd_update(-tf.ones([num_segments, k], tf.int32), where, tf.boolean_mask(order, keep))
+    # Static shapes (a portable program has no dynamic ones): every position is scattered, those not kept into an
+    # extra row and column that are cut off.
+    where = tf.stack([tf.where(keep, sorted_segment, num_segments), tf.where(keep, rank, k)], -1)
+    return tf.tensor_scatter_nd_update(-tf.ones([num_segments + 1, k + 1], tf.int32), where, order)[:-1, :-1]
 
 
 def teflow_cluster_term(c: _Clouds, v, min_points: int):

@@ -15,7 +15,7 @@ import numpy as np
 import tensorflow as tf
 
 from ff3d_tf import xla_export_dir, xla_program
-from ff3d_tf.config import ExperimentConfig
+from ff3d_tf.config import LOSS_SPECS, ExperimentConfig
 from ff3d_tf.data.pairs import bucket_size
 from ff3d_tf.model import step as step_lib
 from ff3d_tf.schema import model_input_keys
@@ -25,18 +25,25 @@ from ff3d_tf.xla_export_dir import input_specs, model_weights, tracing_model
 PLATFORMS = xla_program.PLATFORMS
 
 
-def label_specs(batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
-    """The training step's labels, in `TRAIN_LABEL_KEYS` order: flow_mps_t0 [B,P,3], class_id_t0 [B,P] int32."""
-    return [tf.TensorSpec([batch_size, padded_points, 3], tf.float32, name="flow_mps_t0"),
-            tf.TensorSpec([batch_size, padded_points], tf.int32, name="class_id_t0")]
+def step_label_keys(cfg: ExperimentConfig, num_frames: int) -> tuple[str, ...]:
+    """The labels a training step of `cfg` takes, in argument order: `TRAIN_LABEL_KEYS`, then the fields its loss
+    needs (`config.LOSS_SPECS`: a self-supervised loss's per-cloud fields; its batch holds them as records do)."""
+    return TRAIN_LABEL_KEYS + LOSS_SPECS[cfg.train.loss].fields("needs", num_frames)
+
+
+def label_specs(batch_size: int, padded_points: int, keys: Sequence[str] = TRAIN_LABEL_KEYS) -> list[tf.TensorSpec]:
+    """The training step's labels, in `keys` order: flow_mps_t0 [B,P,3] float32, every other [B,P] int32 (class ids,
+    self-supervision fields)."""
+    return [tf.TensorSpec([batch_size, padded_points, 3] if k == "flow_mps_t0" else [batch_size, padded_points],
+                          tf.float32 if k == "flow_mps_t0" else tf.int32, name=k) for k in keys]
 
 
 def train_step_fn(cfg: ExperimentConfig, model, batch_size: int):
     """The training step (`ff3d_tf.model.step`, the Trainer's) as a function of flat tensors, for one device's batch
     that is the whole global batch, to be compiled whole with XLA:
 
-      (weights..., bn_statistics..., adam_m..., adam_v..., iterations (int32: JAX without x64), six inputs,
-       flow_mps_t0, class_id_t0)
+      (weights..., bn_statistics..., adam_m..., adam_v..., iterations (int32: JAX without x64), the model's inputs,
+       the labels of `step_label_keys`)
         -> (new weights..., new bn_statistics..., new adam_m..., new adam_v..., new iterations, loss, grad_norm)
 
     weights = `model.trainable_variables` order, bn_statistics = `model.non_trainable_variables`; adam_m / adam_v one
@@ -47,7 +54,7 @@ def train_step_fn(cfg: ExperimentConfig, model, batch_size: int):
     layout = step_lib.TrainState([0] * num_weights, [0] * num_stats, [0] * num_weights, [0] * num_weights, 0)
     num_state = len(tf.nest.flatten(layout))
     train_step = step_lib.train_step_fn(cfg, step_lib.loss_and_grads_fn(cfg, model, batch_size, inline_stages=True))
-    keys = model_input_keys(model.num_frames) + TRAIN_LABEL_KEYS
+    keys = model_input_keys(model.num_frames) + step_label_keys(cfg, model.num_frames)
 
     def flat_step(*flat):
         state = tf.nest.pack_sequence_as(layout, list(flat[:num_state]))
@@ -59,18 +66,19 @@ def train_step_fn(cfg: ExperimentConfig, model, batch_size: int):
     return flat_step
 
 
-def train_step_specs(model, batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
+def train_step_specs(cfg: ExperimentConfig, model, batch_size: int, padded_points: int) -> list[tf.TensorSpec]:
     """Argument specs of `train_step_fn`'s step for one bucket."""
     weights = model.trainable_variables
     state = [tf.TensorSpec(v.shape, v.dtype) for v in weights + model.non_trainable_variables + weights + weights]
     return (state + [tf.TensorSpec([], tf.int32, name="iterations")]
-            + input_specs(batch_size, padded_points, model.num_frames) + label_specs(batch_size, padded_points))
+            + input_specs(batch_size, padded_points, model.num_frames)
+            + label_specs(batch_size, padded_points, step_label_keys(cfg, model.num_frames)))
 
 
 def train_step_hlo(cfg: ExperimentConfig, model, batch_size: int, padded_points: int, tf32: bool = False) -> bytes:
     """Serialized pre-optimisation HLO of `train_step_fn` for one bucket (arguments and results as documented there)."""
     return xla_program.traced_hlo(train_step_fn(cfg, model, batch_size),
-                                  train_step_specs(model, batch_size, padded_points), tf32)
+                                  train_step_specs(cfg, model, batch_size, padded_points), tf32)
 
 
 def _reference(cfg: ExperimentConfig, model, manifest: dict, rng: np.random.Generator) -> dict:
@@ -80,11 +88,11 @@ def _reference(cfg: ExperimentConfig, model, manifest: dict, rng: np.random.Gene
     if train is None:
         return {}
     b, p = train["batch_size"], train["padded_points"]
-    batch = xla_export_dir.random_inputs(manifest, train, rng) + random_labels(train, rng)
+    batch = xla_export_dir.random_inputs(manifest, train, rng) + random_labels(train, manifest, rng)
     state = initial_train_state([v.numpy() for v in model_weights(model)], manifest)
     with xla_program.tensor_float_32(False):
         results = tf.function(train_step_fn(cfg, model, b), jit_compile=True)(*state, *batch)
-    return {**{f"train/{k}": a for k, a in zip(tuple(manifest["input_keys"]) + TRAIN_LABEL_KEYS, batch)},
+    return {**{f"train/{k}": a for k, a in zip((*manifest["input_keys"], *manifest["train_label_keys"]), batch)},
             "train/out/loss": results[-2].numpy(), "train/out/grad_norm": results[-1].numpy(),
             "train/batch_size": np.int64(b), "train/padded_points": np.int64(p)}
 
@@ -107,7 +115,7 @@ def export_train_steps(cfg: ExperimentConfig, model, out_dir: str, points: Seque
     manifest = xla_export_dir.read_manifest(out_dir)
     xla_export_dir.check_same_weights(manifest, model, out_dir)
     platforms = manifest["exported_with"]["platforms"]
-    manifest["train_label_keys"] = list(TRAIN_LABEL_KEYS)
+    manifest["train_label_keys"] = list(step_label_keys(cfg, model.num_frames))
     written = {e["file"]: e["bytes"] for e in manifest.setdefault("train_artifacts", [])}
     for precision in precisions:
         tracer = tracing_model(cfg, precision, model)

@@ -4,8 +4,9 @@ only, on the default JAX device (the lab times them: `lab.training.xla_step_timi
 Nothing here imports TensorFlow or a module that does: a machine with JAX/XLA and no TensorFlow (a GPU box) keeps the
 training state on its device and runs steps from an export directory alone (its layout, manifest and weights:
 `ff3d_tf.xla_export_dir`). A training-step artifact takes the state (weights, BatchNorm statistics, Adam's slots,
-iteration count), the six model inputs and the labels of `TRAIN_LABEL_KEYS`, and returns the new state, the loss and
-the gradients' global norm (`xla_step_export.train_step_fn`).
+iteration count), the model inputs and the labels its loss reads (the manifest's `train_label_keys`:
+`TRAIN_LABEL_KEYS` and the fields a self-supervised loss needs), and returns the new state, the loss and the
+gradients' global norm (`xla_step_export.train_step_fn`).
 """
 from __future__ import annotations
 
@@ -21,19 +22,25 @@ def train_artifact_name(batch_size: int, padded_points: int, precision: str) -> 
     return f"train_step_{batch_size}x{padded_points}_{precision}.jaxexport"
 
 
+def label_keys(manifest: dict) -> tuple[str, ...]:
+    """The labels the export's training steps take, in argument order (exports written before the manifest named
+    them take `TRAIN_LABEL_KEYS`)."""
+    return tuple(manifest.get("train_label_keys", TRAIN_LABEL_KEYS))
+
+
 def load_train_step(export_dir: str, entry: dict, manifest: dict):
     """The `jax.export.Exported` of one `train_artifacts` entry (its argument and result counts checked)."""
     state = len(manifest["weights"]) + 2 * manifest["num_trainable"] + 1
-    inputs = len(manifest["input_keys"])
-    return load_artifact(export_dir, entry, state + inputs + len(TRAIN_LABEL_KEYS), state + 2,
-                         f"{state} state arrays + {inputs} inputs + {len(TRAIN_LABEL_KEYS)} labels -> {state} + loss, "
-                         f"grad_norm")
+    inputs, labels = len(manifest["input_keys"]), len(label_keys(manifest))
+    return load_artifact(export_dir, entry, state + inputs + labels, state + 2,
+                         f"{state} state arrays + {inputs} inputs + {labels} labels -> {state} + loss, grad_norm")
 
 
-def random_labels(entry: dict, rng: np.random.Generator) -> list[np.ndarray]:
-    """`xla_export_dir.random_labels` for `xla_export_dir.random_inputs`' t0 clouds, in `TRAIN_LABEL_KEYS` order."""
-    labels = xla_export_dir.random_labels(rng, entry["points"], entry["padded_points"], entry["batch_size"])
-    return [labels[k] for k in TRAIN_LABEL_KEYS]
+def random_labels(entry: dict, manifest: dict, rng: np.random.Generator) -> list[np.ndarray]:
+    """`xla_export_dir.random_labels` for `xla_export_dir.random_inputs`' clouds, in the step's label order."""
+    keys = label_keys(manifest)
+    labels = xla_export_dir.random_labels(rng, entry["points"], entry["padded_points"], entry["batch_size"], keys)
+    return [labels[k] for k in keys]
 
 
 def initial_train_state(weights: list[np.ndarray], manifest: dict) -> list[np.ndarray]:
@@ -71,7 +78,7 @@ def check_train_step(step: CompiledTrainStep, entry: dict, manifest: dict, ref: 
     if ref is None or (int(ref.get("train/padded_points", -1)), int(ref.get("train/batch_size", -1))) != (
             entry["padded_points"], entry["batch_size"]):
         return None
-    batch = [ref[f"train/{k}"] for k in manifest["input_keys"] + manifest["train_label_keys"]]
+    batch = [ref[f"train/{k}"] for k in (*manifest["input_keys"], *label_keys(manifest))]
     loss, grad_norm = (float(x) for x in step(step.on_device(batch)))
     want_loss, want_norm = float(ref["train/out/loss"]), float(ref["train/out/grad_norm"])
     return {"loss_rel_diff": abs(loss - want_loss) / abs(want_loss),

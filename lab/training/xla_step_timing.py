@@ -43,7 +43,7 @@ class TrainStepTiming:
         step = CompiledTrainStep(load_train_step(run.export_dir, entry, run.manifest),
                                  initial_train_state(run.weights, run.manifest))
         check = check_train_step(step, entry, run.manifest, run.reference)
-        batch = random_inputs(run.manifest, entry, run.rng) + random_labels(entry, run.rng)
+        batch = random_inputs(run.manifest, entry, run.rng) + random_labels(entry, run.manifest, run.rng)
         row = {"points": entry["points"], "padded_points": entry["padded_points"], "batch_size": entry["batch_size"],
                "precision": entry["precision"], **time_train_step(step, batch, self.runs, self.warmup),
                "reference": check}

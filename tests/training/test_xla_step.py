@@ -75,7 +75,7 @@ def test_train_step_equals_keras_adam_training(exported_tiny, tiny_config):
     step = xla_step_runner.CompiledTrainStep(xla_step_runner.load_train_step(out_dir, entry, manifest),
                                              xla_step_runner.initial_train_state(weights, manifest))
     rng = np.random.default_rng(4)
-    batch = xla_export_dir.random_inputs(manifest, entry, rng) + xla_step_runner.random_labels(entry, rng)
+    batch = xla_export_dir.random_inputs(manifest, entry, rng) + xla_step_runner.random_labels(entry, manifest, rng)
     jax_losses = [float(step(step.on_device(batch))[0]) for _ in range(2)]
 
     reference = build_model(tiny_config)
@@ -160,3 +160,41 @@ def test_gru_head_forward_and_training_step_without_tensorflow(tiny_config, tmp_
     assert forward["reference"]["max_abs_flow_diff_mps"] < 1e-4 and forward["reference"]["valid_mismatches"] == 0
     (train,) = result["train_step"]
     assert train["reference"]["loss_rel_diff"] < 1e-4 and train["reference"]["grad_norm_rel_diff"] < 1e-3
+
+
+@pytest.mark.parametrize("loss,num_frames,temporal", [
+    ("seflow", 2, "pair"),
+    pytest.param("teflow", 3, "delta", marks=pytest.mark.slow)])  # a second step export: ~1 min more
+def test_self_supervised_step_takes_its_fields_and_equals_tensorflow(tiny_config, tmp_path, loss, num_frames,
+                                                                     temporal):
+    """A self-supervised loss's step exported: its labels are the fields the loss needs (`config.LOSS_SPECS`, one
+    per cloud for TeFlow), named in the manifest, and the JAX step's loss on a batch equals TensorFlow's eager loss of
+    the same model on it (the export's own reference is checked too)."""
+    from ff3d_tf.config import replace_config
+    from ff3d_tf.model.losses import LossContext
+    cfg = replace_config(tiny_config, {"data.source": "pair_records", "data.labels": "self", "train.loss": loss,
+                                       "data.num_frames": num_frames, "model.temporal": temporal})
+    model = tiny_model_off_initial_values(cfg)
+    out_dir = str(tmp_path / "xla")
+    export_forward(cfg, model, POINTS, out_dir, log=lambda _: None)
+    manifest = export_train_steps(cfg, model, out_dir, TRAIN_POINTS, (TRAIN_BATCH,), log=lambda _: None,
+                                  reference=True)
+    clouds = ("t0", "tm1", "tm2")[:num_frames] if loss == "teflow" else ("t0", "tm1")
+    assert manifest["train_label_keys"] == ["flow_mps_t0", "class_id_t0", *(f"dynamic_cluster_{c}" for c in clouds)]
+    (entry,) = manifest["train_artifacts"]
+    weights = xla_export_dir.load_weights(out_dir, manifest)
+    step = xla_step_runner.CompiledTrainStep(xla_step_runner.load_train_step(out_dir, entry, manifest),
+                                             xla_step_runner.initial_train_state(weights, manifest))
+    check = xla_step_runner.check_train_step(step, entry, manifest, xla_export_dir.load_reference(out_dir))
+    assert check["loss_rel_diff"] < 1e-5 and check["grad_norm_rel_diff"] < 1e-3, check
+    step = xla_step_runner.CompiledTrainStep(xla_step_runner.load_train_step(out_dir, entry, manifest),
+                                             xla_step_runner.initial_train_state(weights, manifest))
+    rng = np.random.default_rng(7)
+    batch = xla_export_dir.random_inputs(manifest, entry, rng) + xla_step_runner.random_labels(entry, manifest, rng)
+    jax_loss = float(step(step.on_device(batch))[0])
+    tf_batch = dict(zip((*manifest["input_keys"], *manifest["train_label_keys"]), batch))
+    inputs = {k: tf_batch[k] for k in manifest["input_keys"]}
+    tf_loss = float(batch_flow_loss(tf_batch, model(inputs, training=True), cfg.train.background_weight,
+                                    TRAIN_BATCH, loss=loss, context=LossContext.of(cfg)))
+    assert tf_loss > 0
+    np.testing.assert_allclose(jax_loss, tf_loss, rtol=1e-5)
