@@ -60,12 +60,13 @@ test-zen3: install
 test-distributed: install
 	$(PY) -m pytest -q -m slow -n $(TEST_WORKERS) --dist loadfile $(DISTRIBUTED_TESTS)
 
-# test-docs-commands: every command of docs/datasets.md and docs/deployment.md run as written on small synthetic data
+# test-docs-commands: every command of docs/datasets.md, docs/training.md and docs/deployment.md run as written on small
+# synthetic data
 # (tests/tools/test_docs_commands.py), and the slow tests of the tools users run with several sweeps and Argoverse 2
-# records (predict, eval, the submission, the record jobs, the exports' sweep order).
+# records (predict, eval, the submission, the record jobs, the exports' sweep order, every export of the recipes' model).
 COMMANDS_TESTS = tests/tools/test_docs_commands.py tests/tools/test_several_sweeps_tools.py \
 	tests/tools/test_predict_sequences.py tests/tools/test_record_jobs.py tests/inference/test_sequence_serving.py
-# COMMANDS_SELECT: a pytest -k expression (CI leaves out the deployment page, whose XLA exports at 1M points dominate).
+# COMMANDS_SELECT: a pytest -k expression (CI leaves out the longest: .ci/run says which).
 COMMANDS_SELECT ?=
 .PHONY: test-docs-commands
 test-docs-commands: install

@@ -615,6 +615,58 @@ NSFP_QUALITY_TABLE = Table(
      ("the bar (at most)", V(_NSFP, (_AV2S, "bar_at_most", "three_way/mean_epe_m"), "{} m"), "",
       V(_NSFP, (_AV2S, "bar_at_most", "bucketed/mean_dynamic_norm_epe")))))
 
+# -- NSFP at highway speeds (benchmark_nsfp_speed.py)
+_NS = "nsfp_speed.json"
+_LF = "docs/label_free.md"
+_NS_ROWS = (("the job's fit", "tune/baseline"), ("NSFP's rate, 0.008", "tune/nsfp_rate"),
+            ("patience 400, any improvement", "tune/patient"),
+            ("the job's fit, held-out seeds", "held_out/baseline"),
+            ("NSFP's rate, held-out seeds", "held_out/nsfp_rate"))
+
+
+def _ns_pair(summary, key, fmt="{:.3f}"):
+    """"0-5 band / 10-20 band" of one summary figure."""
+    return Calc("{}", lambda a, b: f"{fmt.format(a)} / {fmt.format(b)}",
+                (V(_NS, f"{summary}/0-5/{key}"), V(_NS, f"{summary}/10-20/{key}")))
+
+
+NSFP_SPEED_BANDS_TABLE = Table(
+    _LF, Quote(_LF, "`lab/tools/benchmark_nsfp_speed.py`, synthetic pairs of {} points a sweep (the `{}` lidars), "
+                    "errors in m, the mean over seeds {} (tuning) and {} (held out), {}:",
+               (V(_NS, "pairs/points_per_sweep", "{:,}"), V(_NS, "pairs/sensor"),
+                Calc("{}", lambda s: " and ".join(map(str, s)), (V(_NS, "pairs/tune_seeds"),)),
+                Calc("{}", lambda s: " and ".join(map(str, s)), (V(_NS, "pairs/held_out_seeds"),)),
+                on_cpu(_NS, "machine"))),
+    ("fit", "moving vehicles, 0-5 / 10-20 m/s", "10-20 over 0-5", "static foreground", "background", "three-way",
+     "Adam steps"), "lrrrrrr",
+    tuple((label, _ns_pair(summary, "moving_vehicle_epe_m"), V(_NS, f"{summary}/fast_over_slow", "{:.2f}x"),
+           _ns_pair(summary, "fg_static_epe_m"), _ns_pair(summary, "bg_static_epe_m"),
+           _ns_pair(summary, "mean_epe_m"), _ns_pair(summary, "iterations", "{:.0f}"))
+          for label, summary in _NS_ROWS))
+NSFP_SPEED_QUOTES = (
+    Quote(_LF, "on every 10-20 m/s pair the objective is lowest at {} to {} times the true motion, and at the true "
+               "motion it is {} to {} of its value at zero motion",
+          (Calc("{:.2f}", lambda p: min(v["argmin_scale"] for k, v in p.items() if k.startswith("10-20/")),
+                (V(_NS, "chamfer_profile"),)),
+           Calc("{:.2f}", lambda p: max(v["argmin_scale"] for k, v in p.items() if k.startswith("10-20/")),
+                (V(_NS, "chamfer_profile"),)),
+           Calc("{:.0%}", lambda p: min(v["at_truth_over_at_zero"] for k, v in p.items() if k.startswith("10-20/")),
+                (V(_NS, "chamfer_profile"),)),
+           Calc("{:.0%}", lambda p: max(v["at_truth_over_at_zero"] for k, v in p.items() if k.startswith("10-20/")),
+                (V(_NS, "chamfer_profile"),)))),
+    Quote(_LF, "NSFP's rate scores {} m three-way on it, better on the static points, but moving foreground {} m and "
+               "bucketed normalized dynamic EPE {}, above the job's bar of {} ({} Adam steps)",
+          (V(_NS, "real_pair/nsfp_rate/mean_epe_m", "{:.3f}"), V(_NS, "real_pair/nsfp_rate/fg_dynamic_epe_m", "{:.3f}"),
+           V(_NS, "real_pair/nsfp_rate/bucketed_mean_dynamic_norm_epe", "{:.3f}"),
+           V(_NSFP, (_AV2S, "bar_at_most", "bucketed/mean_dynamic_norm_epe")), V(_NS, "real_pair/nsfp_rate/iterations"))),
+    Quote(_LF, "On the real pair in `data/` the job's fit scores {} m three-way, moving foreground {} m, background "
+               "{} m, bucketed normalized dynamic EPE {} ({} Adam steps, {} s on {}).",
+          (V(_NS, "real_pair/baseline/mean_epe_m", "{:.3f}"), V(_NS, "real_pair/baseline/fg_dynamic_epe_m", "{:.3f}"),
+           V(_NS, "real_pair/baseline/bg_static_epe_m", "{:.3f}"),
+           V(_NS, "real_pair/baseline/bucketed_mean_dynamic_norm_epe", "{:.3f}"), V(_NS, "real_pair/baseline/iterations"),
+           V(_NS, "real_pair/baseline/fit_s", "{:.0f}"), on_cpu(_NS, "machine"))),
+)
+
 # -- distillation (benchmark_distillation.py)
 _DI = "distillation_synthetic.json"
 
@@ -828,7 +880,7 @@ SWEEPS_COST_TABLE = Table(
 TABLES = (LATENCY_TABLE, BF16_TABLE, MEMORY_TABLE, ONNX_TABLE, GPU_FORWARD_TABLE, GPU_TRAIN_TABLE, INPUT_TABLE,
           AV2_INPUT_TABLE, TRAINING_INPUT_TABLE, SIZING_TABLE, NSFP_SPEED_TABLE, NSFP_QUALITY_TABLE, DISTILLATION_TABLE,
           SOAK_TABLE, ONEDNN_TABLE, HEADS_TABLE, HEADS_SEED1_TABLE, SWEEPS_TABLE, SWEEPS_COST_TABLE,
-          PLANTED_TABLE)
+          PLANTED_TABLE, NSFP_SPEED_BANDS_TABLE)
 
 _1M = "latency_cpu_1m.json"
 _AMD_DIFF = "summary/flow_difference_bfloat16_vs_float32_mps"
@@ -951,6 +1003,7 @@ QUOTES = tuple(
           (V(_AN, "frames"), V(_AN, "points_per_frame", "{:,.0f}"), on_cpu(_AN),
            V(_AN, "cold_first_frame_seconds", "{:.1f}"), V(_AN, "cold_steady_fps", "{:.1f}"),
            V(_AN, "warm_steady_fps", "{:.1f}"))),
+    *NSFP_SPEED_QUOTES,
 )
 
 
