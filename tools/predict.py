@@ -27,7 +27,6 @@ ff3d_tf/inference/predict_job.py.
 """
 import argparse
 import itertools
-import os
 
 import _common
 import numpy as np
@@ -87,40 +86,17 @@ def _arguments():
     return args
 
 
-def _av2_log_examples(log_dir: str, cfg, order):
-    """The model examples (NumPy) of every sweep of an Argoverse 2 log that has a partner, in the model's `order`:
-    the challenge's pairs (`av2.challenge_pair`: the next sweep in the t-1 slot, labelled where the log has
-    annotations) for a model of the next sweep, else each sweep with the ones before it (`av2.labelled_pair`, the
-    t-1 sweep, and the log's earlier sweeps, its first standing in for those it lacks)."""
-    import tensorflow as tf
-    from ff3d_tf.data import pair_records, pairs
-    from ff3d_tf.data.av2 import argoverse2
-    from ff3d_tf.labels import av2
-    stamps = argoverse2.sweep_timestamps(log_dir)
-    if order.partner_matters and order.partner == "next":
-        labels = os.path.isfile(os.path.join(log_dir, av2.ANNOTATIONS_NAME))
-        for index in range(len(stamps) - 1):
-            ex = av2.challenge_pair(log_dir, index, cfg, labels)
-            yield {k: v for k, v in ex.items() if k not in pair_records.METADATA_KEYS}
-        return
-    for index in range(1, len(stamps)):
-        f_tm1, f_t0 = av2.labelled_pair(log_dir, index)
-        history = [argoverse2.read_sweep(log_dir, stamps[max(index - k, 0)]) for k in range(2, order.num_frames)]
-        ex = pairs.make_example([{k: tf.constant(v) for k, v in f.items()} for f in (f_t0, f_tm1, *history)], cfg,
-                                seed=tf.constant([1, 7]))
-        yield {k: v.numpy() for k, v in ex.items()}
-
-
 def _source(args, cfg, order):
     """The pair source of the command line (`predict_job.PairSource`), its examples in the model's `order` (which
     only an Argoverse 2 log's needs when the source is made)."""
     from ff3d_tf.inference import predict_job
     if args.av2_log:  # its labelled pairs come from the labels pipeline, which the inference job does not import
         import tensorflow as tf
+        from ff3d_tf.labels import av2
         partner = "next" if order.partner_matters and order.partner == "next" else "previous"
 
         def examples():  # read lazily, one example at a time (a log's sweeps would not fit in memory together)
-            rows = _av2_log_examples(args.av2_log, cfg, order)
+            rows = av2.log_examples(args.av2_log, cfg, order.num_frames, partner)
             first = next(rows)
             spec = {k: tf.TensorSpec([None] * np.ndim(v), tf.as_dtype(np.asarray(v).dtype)) for k, v in first.items()}
             return tf.data.Dataset.from_generator(lambda: itertools.chain([first], rows), output_signature=spec)

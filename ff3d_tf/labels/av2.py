@@ -210,3 +210,23 @@ def run_records_job(logs: list[str], out_dir: str, cfg: ExperimentConfig, precis
     return beam_job.run_per_input(list(logs), functools.partial(write_log_records, out_dir=out_dir, cfg=cfg,
                                                                 manifest=manifest),
                                   out_dir, "write_pair_records", beam_args)
+
+
+def log_examples(log_dir: str, cfg: ExperimentConfig, num_frames: int, partner: str):
+    """The model examples (NumPy) of every sweep of an Argoverse 2 log that has a partner, in the order of a model of
+    `num_frames` sweeps whose t-1 slot holds the `partner` sweep: with "next" the challenge's pairs (`challenge_pair`,
+    labelled where the log has annotations), else each sweep with the ones before it (`labelled_pair`, the t-1 sweep,
+    and the log's earlier sweeps, its first standing in for those it lacks)."""
+    stamps = argoverse2.sweep_timestamps(log_dir)
+    if partner == "next":
+        labels = os.path.isfile(os.path.join(log_dir, ANNOTATIONS_NAME))
+        for index in range(len(stamps) - 1):
+            ex = challenge_pair(log_dir, index, cfg, labels)
+            yield {k: v for k, v in ex.items() if k not in pair_records.METADATA_KEYS}
+        return
+    for index in range(1, len(stamps)):
+        f_tm1, f_t0 = labelled_pair(log_dir, index)
+        history = [argoverse2.read_sweep(log_dir, stamps[max(index - k, 0)]) for k in range(2, num_frames)]
+        ex = pairs.make_example([{k: tf.constant(v) for k, v in f.items()} for f in (f_t0, f_tm1, *history)], cfg,
+                                seed=tf.constant([1, 7]))
+        yield {k: v.numpy() for k, v in ex.items()}
