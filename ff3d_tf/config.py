@@ -112,6 +112,9 @@ class DataConfig:
     max_training_segments: int = 0  # 0 = all; the data-size study sets this
     point_keep_fraction: float = 1.0  # point-density study: random share of points kept per frame
     remove_ground_below_z_m: float | None = None  # ground-removal study: drop points below this z (vehicle frame)
+    # DeltaFlow's input (its authors remove ground from every sweep): every sweep's ground points are left out of the
+    # model's input by the records' masks (`schema.ground_keys`); they keep their place in the example and get flow 0.
+    drop_ground: bool = False
     # Training augmentation (off in the paper config), drawn per pair from the training seed after the decode-once
     # records: with this probability both clouds move by one z offset drawn uniformly from the range (m) ...
     augment_height_offset_prob: float = 0.0
@@ -131,6 +134,12 @@ class DataConfig:
         if self.labels != "human" and self.source != "pair_records":
             raise ConfigError(f"data.labels={self.labels}: its fields live in pair records (data.source=pair_records, "
                               "written by tools/pseudo_label.py or tools/prepare_self_supervision.py)")
+        if not isinstance(self.drop_ground, bool):
+            raise ConfigError(f"data.drop_ground={self.drop_ground!r}: true or false")
+        if self.drop_ground and self.source != "pair_records":
+            raise ConfigError("data.drop_ground=true: every sweep's ground masks live in pair records "
+                              "(data.source=pair_records; Argoverse 2 records carry them, tools/add_ground_masks.py "
+                              "adds them to others)")
         if self.source == "pair_records" and not self.ego_motion_compensation:
             raise ConfigError("data.ego_motion_compensation=false: pair records hold the t-1 cloud already moved "
                               "into the t0 frame; use data.source=wod for the ego-motion study")

@@ -94,11 +94,11 @@ POINT_KEYS = {
     PSEUDO_VALID_KEY: PointKey("bool", (), "t0", "the point has a pseudo-label (False: outside the fitted region, "
                                "ground, or its pair's fit failed; no label, not a zero label)", "uint8",
                                optional=True),
-    "is_ground_t0": PointKey("bool", (), "t0", "ground by the Argoverse 2 log's ground-height raster", "uint8",
-                             optional=True),
+    "is_ground_t0": PointKey("bool", (), "t0", "ground (Argoverse 2: the log's ground-height raster; other records: "
+                             "the height rule of `tools/add_ground_masks.py`)", "uint8", optional=True),
     "category_t0": PointKey("int32", (), "t0", "Argoverse 2 category index (-1: none)", "int8", optional=True,
                             padding=-1),
-    "is_ground_tm1": PointKey("bool", (), "tm1", "the partner cloud's ground by the same raster", "uint8",
+    "is_ground_tm1": PointKey("bool", (), "tm1", "the partner cloud's ground by the same rule as t0's", "uint8",
                               optional=True),
     "instance_id_t0": PointKey("int32", (), "t0", "the labelled box (track) the point is in, numbered within its "
                                "pair from 0; -1: in no box", "int32", optional=True,
@@ -184,6 +184,20 @@ for _cloud in sweep_clouds(MAX_NUM_FRAMES):
     POINT_KEYS[DYNAMIC_CLUSTER_KEY_FORMAT.format(cloud=_cloud)] = PointKey(
         "int32", (), _cloud, "self-supervision: -2 ground, -1 static (DUFOMap), 0 dynamic in no cluster, k >= 1 "
         "dynamic in cluster k of its sweep (HDBSCAN)", "int16", optional=True, padding=DYNAMIC_CLUSTER_STATIC)
+
+
+# Every sweep's ground (`data.drop_ground`: DeltaFlow's input without it): t0's and the partner's above, the past
+# sweeps' here, each by the same rule as t0's (`ground_keys`).
+GROUND_KEY_FORMAT = "is_ground_{cloud}"
+for _cloud in sweep_clouds(MAX_NUM_FRAMES)[2:]:
+    POINT_KEYS[GROUND_KEY_FORMAT.format(cloud=_cloud)] = PointKey(
+        "bool", (), _cloud, "the past sweep's ground (Argoverse 2: the log's raster; other records: the height "
+        "rule of `tools/add_ground_masks.py`)", "uint8", optional=True)
+
+
+def ground_keys(num_frames: int) -> tuple[str, ...]:
+    """The ground mask keys of every sweep of an example of `num_frames` sweeps, in slot order."""
+    return tuple(GROUND_KEY_FORMAT.format(cloud=c) for c in sweep_clouds(num_frames))
 
 
 def _point_keys(cloud: str, optional: bool) -> tuple[str, ...]:

@@ -47,6 +47,7 @@ def test_yaml_is_data_only(tmp_path):
     ("train.learning_rate=.inf", r"train.learning_rate: expected a finite number, got inf"),
     ("train.grad_clip_norm=.nan", r"train.grad_clip_norm \(or null\): expected a finite number"),
     ("data.remove_ground_below_z_m=low", r"data.remove_ground_below_z_m \(or null\): expected a finite number"),
+    ("data.drop_ground=true", r"data.drop_ground=true: every sweep's ground masks live in pair records"),
     ("train.beta_1=1.5", r"train.beta_1=1.5: must be in \[0, 1\)"),
     ("train.checkpoint_every_steps=0", r"train.checkpoint_every_steps=0: must be >= 1"),
     ("train.seed=-1", r"train.seed=-1: must be in \[0, 4294967295\]"),

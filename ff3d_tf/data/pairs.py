@@ -294,6 +294,11 @@ def check_records_match(manifest, cfg: ExperimentConfig, where: str, inference_o
     if d.labels == "pseudo" and schema.PSEUDO_FLOW_KEY not in manifest.extras:
         raise ConfigError(f"{where}: data.labels=pseudo, but these records hold no pseudo-labels "
                           "(write them with tools/pseudo_label.py)")
+    missing_ground = [k for k in schema.ground_keys(manifest.num_frames) if k not in manifest.extras]
+    if d.drop_ground and missing_ground:
+        raise ConfigError(f"{where}: data.drop_ground=true reads every sweep's ground mask, and these pair records "
+                          f"lack {missing_ground}: add them with tools/add_ground_masks.py (Argoverse 2 records "
+                          "written with several sweeps carry them all)")
 
 
 def with_data_partner(cfg: ExperimentConfig, files: list[str]) -> ExperimentConfig:
@@ -328,6 +333,8 @@ def pair_dataset(files: list[str], cfg: ExperimentConfig, *, inference_only: boo
     if cfg.data.source == "pair_records":
         manifest = pair_records.manifest_of_files(list(files))
         check_records_match(manifest, cfg, os.path.dirname(files[0]), inference_only, training_labels)
+        if cfg.data.drop_ground:  # the masks `batch_examples` leaves out of the model's input
+            extras = tuple(extras) + tuple(k for k in schema.ground_keys(cfg.data.num_frames) if k not in extras)
         fn = lambda f: _pairs_of_records(f, cfg, manifest, tuple(extras), metadata, skip, training_labels)  # noqa
     else:
         if extras:
@@ -336,18 +343,21 @@ def pair_dataset(files: list[str], cfg: ExperimentConfig, *, inference_only: boo
     return files_ds.interleave(fn, cycle_length=2, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)
 
 
-def padded_singletons(ds: tf.data.Dataset, bucket_base: int):
+def padded_singletons(ds: tf.data.Dataset, bucket_base: int, drop_ground: bool = False):
     """(batch of one example padded to its bucket, the same example unpadded) for each example of `ds`: inference
-    input without a tf.data pipeline per example."""
-    for batch in batch_examples(ds, 1, bucket_base).prefetch(2):
+    input without a tf.data pipeline per example (`drop_ground` as `batch_examples`)."""
+    for batch in batch_examples(ds, 1, bucket_base, drop_ground=drop_ground).prefetch(2):
         length = {k: int(batch[schema.cloud_keys(_cloud_of(k))["count"]][0]) for k in batch if k in schema.POINT_KEYS}
         yield batch, {k: v[0, :length[k]] if k in length else v[0]
                       for k, v in batch.items() if not k.startswith("point_mask_")}
 
 
-def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_remainder: bool = False):
+def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_remainder: bool = False,
+                   drop_ground: bool = False):
     """Pads point arrays to a common bucketed size (per cloud) and adds each cloud's mask (`point_mask_t0`,
-    `point_mask_tm1`, ...)."""
+    `point_mask_tm1`, ...): its real points, with `drop_ground` (`data.drop_ground`) those its ground mask
+    (`schema.GROUND_KEY_FORMAT`) does not flag, so that the model reads no ground point of any sweep and predicts 0
+    flow at t0's (its output's validity)."""
     ds = ds.padded_batch(batch_size, drop_remainder=drop_remainder)
 
     def pad(batch):
@@ -361,11 +371,13 @@ def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_
                 v = batch[k]
                 paddings = [[0, 0], [0, target - n]] + [[0, 0]] * (len(v.shape) - 2)
                 out[k] = tf.pad(v, paddings, constant_values=tf.cast(schema.POINT_KEYS[k].padding, v.dtype))
-            out[f"point_mask_{suffix}"] = tf.sequence_mask(batch[f"num_points_{suffix}"], target)
-            # padded_batch fills with 0 (a class id's background); the masks say what is real
+            real = tf.sequence_mask(batch[f"num_points_{suffix}"], target)
+            # padded_batch fills with 0 (a class id's background); `real` says what is real
             for k in (k for k in keys if k in out and schema.POINT_KEYS[k].padding != 0):
-                out[k] = tf.where(out[f"point_mask_{suffix}"], out[k], tf.cast(schema.POINT_KEYS[k].padding,
-                                                                              out[k].dtype))
+                out[k] = tf.where(real, out[k], tf.cast(schema.POINT_KEYS[k].padding, out[k].dtype))
+            if drop_ground:
+                real &= ~tf.cast(out[schema.GROUND_KEY_FORMAT.format(cloud=suffix)], tf.bool)
+            out[f"point_mask_{suffix}"] = real
         return out
 
     return ds.map(pad, num_parallel_calls=tf.data.AUTOTUNE, deterministic=True)

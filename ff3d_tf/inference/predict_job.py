@@ -74,7 +74,8 @@ def _dataset_pairs(source: str, make_examples: Callable[[], tf.data.Dataset], cf
                    partner: str) -> Iterator[PairToPredict]:
     """`frame_<i>` pairs of a dataset of examples; a bad record of `source` raises a FrameDecodeError naming it."""
     with pairs.input_errors_named([source]):
-        for i, (batch, ex) in enumerate(pairs.padded_singletons(make_examples(), cfg.data.point_bucket_base)):
+        for i, (batch, ex) in enumerate(pairs.padded_singletons(make_examples(), cfg.data.point_bucket_base,
+                                                                cfg.data.drop_ground)):
             yield PairToPredict(f"frame_{i:04d}", i + 1, batch, {k: v.numpy() for k, v in ex.items()}, partner)
 
 
@@ -193,6 +194,10 @@ def _user_cloud_pairs(sweeps: list[str], poses: list[np.ndarray] | None, intensi
         pair = bool(plan) and len(plan[0].slots) == 2
         log(f"no poses: the {'t-1 cloud of each pair is' if pair else 'past clouds of each example are'} taken as "
             "already in the t0 vehicle frame (no ego-motion compensation)")
+    if cfg.data.drop_ground:
+        raise ConfigError("this model reads no ground point of any sweep (data.drop_ground=true), and point files "
+                          "carry no ground masks: write pair records of the sweeps, add the masks with "
+                          "tools/add_ground_masks.py and predict on those records")
     raw_cfg = pairs.raw_pair_config(cfg)
     notes, frames = _Notes(log), {}
     for item in plan:

@@ -6,10 +6,10 @@ Records for the challenge pair each sweep t (the t0 cloud) with the NEXT sweep t
 the challenge scores the points of sweep t with their displacement to sweep t+1. The label is the model's quantity,
 the motion from the partner cloud to the t0 cloud divided by the gap, (p_t - p_t+1) / dt, so it is minus the
 velocity; the challenge's flow (metres to the next sweep) is -flow_mps_t0 * dt. Each record also holds the ground
-masks of both clouds (`is_ground_t0`, `is_ground_tm1`: the log's ground raster), the Argoverse category of every
-point (`category_t0`, the `classes` values of Argoverse's own flow labels; 0 = in no cuboid) and its cuboid
-(`instance_id_t0`: the index of the cuboid among the sweep's, the box that labelled the point; -1 = in no cuboid), for
-DeltaFlow's class and instance terms (`ff3d_tf.model.losses`). The last sweep of a log has no partner.
+masks of every cloud (`schema.ground_keys`: the log's ground raster), the Argoverse category of every point
+(`category_t0`, the `classes` values of Argoverse's own flow labels; 0 = in no cuboid) and its cuboid (`instance_id_t0`:
+the index of the cuboid among the sweep's, the box that labelled the point; -1 = in no cuboid), for DeltaFlow's class
+and instance terms (`ff3d_tf.model.losses`). The last sweep of a log has no partner.
 
 Logs without `annotations.feather` (the test split) are written unlabelled (`labels=False`, `--no_labels`): the same
 points in the same order and the same pairs as labelled records (so the official masks match), the map's ground masks
@@ -123,8 +123,8 @@ def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig, labels: bool
                               np.int32)
         ex["category_t0"] = categories[owner]  # owner -1 (no cuboid) reads the appended 0
         ex["instance_id_t0"] = owner  # the cuboid (track) of each point, by its index among the sweep's cuboids
-    ex["is_ground_t0"] = argoverse2.is_ground(log_dir, f_t0["points_xyz"], f_t0["pose"])
-    ex["is_ground_tm1"] = argoverse2.is_ground(log_dir, f_next["points_xyz"], f_next["pose"])  # the partner's
+    for key, f in zip(schema.ground_keys(cfg.data.num_frames), (f_t0, f_next, *history)):  # every sweep's, slot order
+        ex[key] = argoverse2.is_ground(log_dir, f["points_xyz"], f["pose"])
     ex[pair_records.TIMESTAMP_KEY], ex[pair_records.PARTNER_TIMESTAMP_KEY] = ts_t0, ts_next
     ex[pair_records.SEQUENCE_KEY] = os.path.basename(os.path.normpath(log_dir))
     return ex
@@ -133,10 +133,11 @@ def challenge_pair(log_dir: str, index: int, cfg: ExperimentConfig, labels: bool
 def records_manifest(cfg: ExperimentConfig, precision: str = "exact", compression: str = "none",
                      written_by: str = "", labels: bool = True) -> pair_records.Manifest:
     """Both lidars, first returns, paired with the next sweep; `AV2_EXTRAS` and `human_labels` when labelled, else
-    `AV2_UNLABELLED_EXTRAS` and `human_labels: false`."""
+    `AV2_UNLABELLED_EXTRAS` and `human_labels: false`; with more than 2 sweeps also the past sweeps' ground masks."""
     return pair_records.Manifest(source="av2", laser_names=(1, 2), returns=(1,), max_frame_gap_s=cfg.data.max_frame_gap_s,
                                  precision=precision, compression=compression,
-                                 extras=AV2_EXTRAS if labels else AV2_UNLABELLED_EXTRAS, human_labels=labels,
+                                 extras=(AV2_EXTRAS if labels else AV2_UNLABELLED_EXTRAS) +
+                                 schema.ground_keys(cfg.data.num_frames)[2:], human_labels=labels,
                                  partner="next", num_frames=cfg.data.num_frames,
                                  written_by=written_by).validate("<manifest>")
 

@@ -71,7 +71,7 @@ def evaluate(cfg: ExperimentConfig, files: list[str], predictor: Predictor, max_
         ds = ds.take(max_pairs)
     t0, done = time.time(), 0
     with pairs.input_errors_named(files, pairs.decode_options(cfg)):  # a bad record: file, record and field named
-        for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base):
+        for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base, cfg.data.drop_ground):
             flow_pred, valid = predictor.predict(batch, ex)
             zero_flow = tf.zeros_like(ex["flow_mps_t0"])
             for m, flow in ((metric, flow_pred), (zero, zero_flow), (metric_crop, flow_pred), (zero_crop, zero_flow)):
@@ -162,7 +162,7 @@ def av2_challenge_examples(cfg: ExperimentConfig, files: list[str], predictor: P
         ds = ds.take(max_pairs)
     t0, done = time.time(), 0
     with pairs.input_errors_named(files):
-        for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base):
+        for batch, ex in pairs.padded_singletons(ds, cfg.data.point_bucket_base, cfg.data.drop_ground):
             flow_pred, valid = predictor.predict(batch, ex)
             ex = {k: v.numpy() for k, v in ex.items()}
             valid = np.asarray(valid)

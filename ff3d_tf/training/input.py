@@ -104,7 +104,8 @@ def training_dataset(files: list[str], cfg: ExperimentConfig, batch_size: int, s
         ds = ds.cache()
     ds = ds.shuffle(cfg.data.shuffle_buffer, seed=cfg.train.seed, reshuffle_each_iteration=True).repeat()
     ds = _training_transforms(ds, cfg, None if data_service_address else shard)
-    ds = pairs.batch_examples(ds, batch_size, cfg.data.point_bucket_base, drop_remainder=True)
+    ds = pairs.batch_examples(ds, batch_size, cfg.data.point_bucket_base, drop_remainder=True,
+                              drop_ground=cfg.data.drop_ground)
     if data_service_address:
         ds = ds.apply(tf.data.experimental.service.distribute(
             processing_mode=tf.data.experimental.service.ShardingPolicy.DYNAMIC, service=data_service_address,

@@ -1,5 +1,8 @@
 """Sequences of `data.num_frames` sweeps: each past cloud in the t0 frame by its own pose, the first frames of a log
 without a full history give no example, decode-once records carry the past sweeps and refuse another N."""
+import dataclasses
+import os
+
 import numpy as np
 import pytest
 
@@ -131,3 +134,75 @@ def test_av2_records_of_three_sweeps_hold_the_sweep_before_t0(tiny_config, tmp_p
         np.testing.assert_array_equal(ex["pose_tm2"], before["pose"])
         np.testing.assert_allclose(ex["points_xyz_tm2_in_t0"], _in_t0(before["points_xyz"], ex["pose_t0"],
                                                                       before["pose"]), atol=1e-3)
+
+
+def test_av2_records_flag_every_sweeps_ground_and_drop_ground_masks_it_out(tiny_config, tmp_path):
+    """Records of 3 sweeps of the real sample log hold every sweep's ground by the log's raster (each sweep's own
+    points and pose, `argoverse2.is_ground`); with `data.drop_ground` every cloud's model mask is its real points
+    less its ground, while the ground points keep their place and labels in the example (flow 0 is predicted there);
+    records without the past sweeps' masks are a ConfigError naming the tool that adds them."""
+    from conftest import AV2_LOG
+    from ff3d_tf.data.av2 import argoverse2
+    from ff3d_tf.labels import av2
+    cfg = replace_config(tiny_config, {"data.num_frames": 3, "model.temporal": "delta"})
+    stamps = argoverse2.sweep_timestamps(AV2_LOG)
+    out = str(tmp_path / "av2")
+    manifest = av2.records_manifest(cfg)
+    assert set(schema.ground_keys(3)) <= set(manifest.extras)
+    pair_records.write_manifest(out, manifest)
+    av2.write_log_records(AV2_LOG, out, cfg, manifest)
+    files = pairs.list_segment_files(out)
+    read_cfg = replace_config(cfg, {"data.source": "pair_records", "data.crop_to_grid": False})
+    dropping = replace_config(read_cfg, {"data.drop_ground": True})
+    examples = list(pairs.pair_dataset(files, read_cfg, extras=schema.ground_keys(3)))
+    batches = list(pairs.batch_examples(pairs.pair_dataset(files, dropping), 1, 1024, drop_ground=True))
+    assert len(examples) == len(batches) == len(stamps) - 1
+    for i, (ex, batch) in enumerate(zip(examples, batches)):
+        sweeps = [argoverse2.read_sweep(AV2_LOG, stamps[j]) for j in (i, i + 1, max(i - 1, 0))]  # t0, next, before
+        for cloud, sweep in zip(schema.sweep_clouds(3), sweeps):
+            ground = ex[schema.GROUND_KEY_FORMAT.format(cloud=cloud)].numpy()
+            np.testing.assert_array_equal(ground, argoverse2.is_ground(AV2_LOG, sweep["points_xyz"], sweep["pose"]))
+            n = len(ground)
+            mask = batch[schema.cloud_keys(cloud)["mask"]].numpy()[0]
+            np.testing.assert_array_equal(mask[:n], ~ground)
+            assert not mask[n:].any() and 0 < ground.sum() < n
+        n0 = int(batch["num_points_t0"][0])
+        np.testing.assert_array_equal(batch["class_id_t0"].numpy()[0, :n0], ex["class_id_t0"].numpy())
+    older = str(tmp_path / "older")  # as written before the past sweeps' masks
+    pair_records.write_manifest(older, dataclasses.replace(manifest, extras=av2.AV2_EXTRAS))
+    with pytest.raises(ConfigError, match=r"data.drop_ground.*is_ground_tm2.*tools/add_ground_masks.py"):
+        pairs.pair_dataset([os.path.join(older, "x" + pair_records.FILE_SUFFIX)], dropping)
+
+
+def test_a_dropped_ground_point_is_as_if_absent_from_every_sweep(tiny_config, tmp_path):
+    """The authors remove ground points from every sweep; `data.drop_ground` masks them: the model's flow at the
+    non-ground t0 points of the masked batch equals its flow on the same example with every sweep's ground points
+    taken out (`delta` of 3, DeltaFlow's head, the real sample log's records), and is 0 at the ground points."""
+    import tensorflow as tf
+    from conftest import AV2_LOG
+    from ff3d_tf.labels import av2
+    from ff3d_tf.model.fastflow3d import build_model
+    cfg = replace_config(tiny_config, {"data.num_frames": 3, "model.temporal": "delta", "model.head": "mlp"})
+    out = str(tmp_path / "av2")
+    manifest = av2.records_manifest(cfg)
+    pair_records.write_manifest(out, manifest)
+    av2.write_log_records(AV2_LOG, out, cfg, manifest)
+    read_cfg = replace_config(cfg, {"data.source": "pair_records", "data.drop_ground": True})
+    ex = next(iter(pairs.pair_dataset(pairs.list_segment_files(out), read_cfg)))
+    masked = next(iter(pairs.batch_examples(tf.data.Dataset.from_tensors(ex), 1, 1024, drop_ground=True)))
+    removed = dict(ex)
+    for cloud in schema.sweep_clouds(3):
+        keep = ~ex[schema.GROUND_KEY_FORMAT.format(cloud=cloud)]
+        for k in [k for k in ex if k in schema.POINT_KEYS and schema.POINT_KEYS[k].cloud == cloud]:
+            removed[k] = tf.boolean_mask(ex[k], keep)
+        removed[schema.cloud_keys(cloud)["count"]] = tf.reduce_sum(tf.cast(keep, tf.int32))
+    without = next(iter(pairs.batch_examples(tf.data.Dataset.from_tensors(removed), 1, 1024)))
+    model = build_model(read_cfg, compile_mode="none")
+    flow_masked = model(masked)["flow_mps"].numpy()[0]
+    flow_without = model(without)["flow_mps"].numpy()[0]
+    ground = ex["is_ground_t0"].numpy()
+    n = len(ground)
+    assert 0 < ground.sum() < n and np.abs(flow_without[:n - ground.sum()]).max() > 0
+    np.testing.assert_allclose(flow_masked[:n][~ground], flow_without[:n - ground.sum()], atol=1e-5)
+    assert not flow_masked[:n][ground].any()
+
