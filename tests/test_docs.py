@@ -818,7 +818,10 @@ _SP = "sweeps_planted_av2.json"  # the instrument: a planted defect against the 
 _SP_NAMES = {"paper_pair": "paper model, 2 sweeps", "gru_deltaflow_pair": "GRU + DeltaFlow loss, 2 sweeps",
              "stack_3": "GRU + DeltaFlow loss, stack of 3", "delta_3": "DeltaFlow head and loss, delta of 3",
              "delta_5": "DeltaFlow head and loss, delta of 5",
-             "delta_5_reversed": "planted defect: delta of 5 reversed", "zero_flow": "zero flow"}
+             "delta_5_reversed": "planted defect: delta of 5 reversed",
+             "delta_5_no_ground": "DeltaFlow head and loss, delta of 5, ground dropped", "zero_flow": "zero flow"}
+
+
 def _planted_cell(path):
     return Calc("{}", lambda s: "n/a" if s["mean"] is None else f"{s['mean']:.3f} ± {s['std']:.3f}", (V(_SP, path),))
 

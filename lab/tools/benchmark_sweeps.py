@@ -15,13 +15,15 @@ python lab/tools/benchmark_sweeps.py --subset SRC DST full:K|filled:K: the pair 
     at or after (full) or before (filled) K among its log's t0 sweeps, into DST (a stage of the benchmark)
 
 Variants (lab/training/sweeps_benchmark.py VARIANTS): paper_pair, gru_deltaflow_pair, stack_3, delta_3, delta_5,
-delta_5_reversed. Stages per data format: synthetic data (training, held-out; --realistic: the generator's sensor
-model); pair records of both for each number of sweeps, and their full and filled parts; each variant trained with
-each seed on the full part (`tools/train.py`); each evaluated on both held-out parts (`tools/eval.py`). --json gets
-per variant and part the mean, sample standard deviation, min and max over the seeds of the paper's moving /
-stationary error, the three-way EPE and the bucketed dynamic EPE, zero flow's, whether zero flow, the paper's model
-and the best variant are apart by more than the seeds' spread, and whether the planted defect comes out worse than
-delta of 5 beyond it. Resumable (`ff3d_tf.stages`): a rerun with the same command skips what is done.
+delta_5_reversed, delta_5_no_ground; without labels nsfp_pair, seflow_pair, teflow_5. Stages per data format:
+synthetic data (training, held-out; --realistic: the generator's sensor model); pair records of both for each number
+of sweeps, and their full and filled parts; the fields a variant's records need (pseudo-labels, self-supervision's,
+ground masks); each variant trained with each seed on the full part (`tools/train.py`); each evaluated on both
+held-out parts (`tools/eval.py`). --json gets per variant and part the mean, sample standard deviation, min and max
+over the seeds of the paper's moving / stationary error, the three-way EPE and the bucketed dynamic EPE, zero flow's,
+whether zero flow, the paper's model and the best variant are apart by more than the seeds' spread, and whether the
+planted defect comes out worse than delta of 5 beyond it. Resumable (`ff3d_tf.stages`): a rerun with the same
+command skips what is done.
 """
 import argparse
 import json

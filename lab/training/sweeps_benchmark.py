@@ -1,10 +1,11 @@
 """Multi-sweep models against the pair, over several seeds, the job of `lab/tools/benchmark_sweeps.py`: the paper's
 model on 2 sweeps, DeFlow's GRU head with DeltaFlow's loss on 2 sweeps and `stack` of 3, DeltaFlow's point head and
 loss with `delta` of 3 and 5 sweeps (and of 5 with every sweep's ground left out, `data.drop_ground`, as the
-authors), and a planted defect, `delta_5_reversed` (the difference taken from t0 whatever the records' direction,
-`lab.training.planted_defects`), each trained with every seed of `Options.seeds` on the same
-synthetic examples and scored on held-out ones (other logs, another generator seed) beside zero flow; the spread over
-the seeds beside each mean.
+authors), a planted defect, `delta_5_reversed` (the difference taken from t0 whatever the records' direction,
+`lab.training.planted_defects`), and without labels, each beside its supervised twin: the paper's model distilled
+from NSFP's pseudo-labels, SeFlow's loss on the GRU head, TeFlow's on `delta` of 5 (`VARIANTS`). Each is trained with
+every seed of `Options.seeds` on the same synthetic examples and scored on held-out ones (other logs, another
+generator seed) beside zero flow; the spread over the seeds beside each mean.
 
 Every variant trains and is scored on the same t0 sweeps: those whose every past slot holds its own sweep for the
 variant of the most sweeps ("full", the log's t0 sweeps from rank `Options.history_rank()` on, rank counted among the
@@ -19,9 +20,11 @@ data format of `Options.formats`:
 2. pair records of both splits for each number of sweeps the variants read (`tools/write_pair_records.py --set
    data.num_frames=N`: a record of N sweeps holds its past sweeps), then their full and filled parts
    (`lab/tools/benchmark_sweeps.py --subset`, `subset_records`);
-3. each variant trained with each seed on the full part (`tools/train.py`, `train.seed`), same config and steps; the
+3. the fields a variant's records need first (`PREPARATIONS`: pseudo-labels, self-supervision's, every sweep's
+   ground), once per records part;
+4. each variant trained with each seed on the full part (`tools/train.py`, `train.seed`), same config and steps; the
    planted variant through `lab/tools/run_planted.py`;
-4. each evaluated on the held-out full and filled parts (`tools/eval.py`; `--protocol av2` for AV2), beside zero
+5. each evaluated on the held-out full and filled parts (`tools/eval.py`; `--protocol av2` for AV2), beside zero
    flow.
 `run` gathers the figures (`format_summary`: per variant and part the mean, sample standard deviation, minimum and
 maximum over the seeds of each headline figure of `heads_benchmark.HEADLINE_KEYS`; whether zero flow, the paper's
@@ -44,33 +47,62 @@ from lab.paths import LAB_TOOLS_DIR, ROOT, TOOLS_DIR
 from lab.training.distillation_benchmark import Stage, print_line, run_stages, write_json
 from lab.training.heads_benchmark import FORMATS, HEADLINE_KEYS, SPLIT_SEEDS, eval_metrics, generate_stages, headline
 
-# DeFlow's head with DeltaFlow's loss with its authors' gradient clip (configs/deltaflow_av2.yaml) and a rate below
-# the config's: at the config's rate, on the benchmark's batch, this head and loss diverged (the loss grew without
-# bound and the trainer stopped on non-finite steps), with the clip and without. The paper's model keeps the config's
-# rate.
-GRU_DELTAFLOW = ("model.head=gru", "train.loss=deltaflow", "train.grad_clip_norm=5.0", "train.learning_rate=5e-4")
-# DeltaFlow's point head and loss (configs/deltaflow_av2.yaml's head), with the GRU variants' clip, at the config's
-# rate: the GRU's lower rate left it nearer zero flow at the planted defect's budget (docs/benchmarks.md).
-MLP_DELTAFLOW = ("model.head=mlp", "train.loss=deltaflow", "train.grad_clip_norm=5.0")
+# DeFlow's GRU head with its authors' gradient clip (configs/deltaflow_av2.yaml) and a rate below the config's: at the
+# config's rate, on the benchmark's batch, it diverged with DeltaFlow's loss (the loss grew without bound and the
+# trainer stopped on non-finite steps), with the clip and without. The paper's model keeps the config's rate.
+GRU_HEAD = ("model.head=gru", "train.grad_clip_norm=5.0", "train.learning_rate=5e-4")
+# DeltaFlow's point head (configs/deltaflow_av2.yaml's head) with the same clip, at the config's rate: the GRU's lower
+# rate left it nearer zero flow at the planted defect's budget (docs/benchmarks.md).
+MLP_HEAD = ("model.head=mlp", "train.grad_clip_norm=5.0")
+GRU_DELTAFLOW, MLP_DELTAFLOW = (head + ("train.loss=deltaflow",) for head in (GRU_HEAD, MLP_HEAD))
 PLANTED = "delta_5_reversed"  # the planted defect, and the variant it must come out worse than
 CORRECTED = "delta_5"
-# {variant: (sweeps, its config overrides)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """What a variant reads and how it trains: its sweeps, config overrides of its training and evaluation (`sets`)
+    and of its training alone (`train_sets`: the labels it trains on and their loss; evaluation scores human
+    labels), and the fields its records need first (`prepare`, a key of `PREPARATIONS`)."""
+    sweeps: int
+    sets: tuple[str, ...]
+    train_sets: tuple[str, ...] = ()
+    prepare: str = ""
+
+
+# The jobs that add fields to a variant's records, {name: (tool, the splits it prepares)}, each run on a split's
+# records before they are cut into parts (self-supervision's DUFOMap reads every sweep of a log): NSFP pseudo-labels
+# (ZeroFlow's distillation) and self-supervision's DUFOMap flags and clusters (SeFlow, TeFlow) of the training split;
+# every sweep's ground mask of both (`data.drop_ground`; Argoverse 2 records carry theirs, so it runs on WOD's).
+PREPARATIONS = {"pseudo": ("pseudo_label.py", ("train",)), "self": ("prepare_self_supervision.py", ("train",)),
+                "ground": ("add_ground_masks.py", ("train", "eval"))}
+SELF_SUPERVISED = ("data.labels=self",)
 VARIANTS = {
-    "paper_pair": (2, ("model.head=paper", "train.loss=l2")),
-    "gru_deltaflow_pair": (2, GRU_DELTAFLOW),
-    "stack_3": (3, GRU_DELTAFLOW + ("model.temporal=stack",)),
-    "delta_3": (3, MLP_DELTAFLOW + ("model.temporal=delta",)),
-    CORRECTED: (5, MLP_DELTAFLOW + ("model.temporal=delta",)),
-    PLANTED: (5, MLP_DELTAFLOW + ("model.temporal=delta_reversed",)),
-    "delta_5_no_ground": (5, MLP_DELTAFLOW + ("model.temporal=delta", "data.drop_ground=true")),
+    "paper_pair": Variant(2, ("model.head=paper", "train.loss=l2")),
+    "gru_deltaflow_pair": Variant(2, GRU_DELTAFLOW),
+    "stack_3": Variant(3, GRU_DELTAFLOW + ("model.temporal=stack",)),
+    "delta_3": Variant(3, MLP_DELTAFLOW + ("model.temporal=delta",)),
+    CORRECTED: Variant(5, MLP_DELTAFLOW + ("model.temporal=delta",)),
+    PLANTED: Variant(5, MLP_DELTAFLOW + ("model.temporal=delta_reversed",)),
+    "delta_5_no_ground": Variant(5, MLP_DELTAFLOW + ("model.temporal=delta", "data.drop_ground=true"),
+                                 prepare="ground"),
+    # Without labels (issue 53), each beside its supervised twin above: the paper's model distilled from NSFP's
+    # pseudo-labels (ZeroFlow); SeFlow's loss on DeFlow's head (its authors' backbone); TeFlow's on DeltaFlow's
+    # backbone of 5 sweeps (its authors' command, KTH-RPL/OpenSceneFlow @848bf86 README "TeFlow").
+    "nsfp_pair": Variant(2, ("model.head=paper",), ("data.labels=pseudo", "train.loss=l2"), "pseudo"),
+    "seflow_pair": Variant(2, GRU_HEAD, SELF_SUPERVISED + ("train.loss=seflow",), "self"),
+    "teflow_5": Variant(5, MLP_HEAD + ("model.temporal=delta",), SELF_SUPERVISED + ("train.loss=teflow",), "self"),
 }
 VARIANT_NAMES = {"paper_pair": "paper model, 2 sweeps", "gru_deltaflow_pair": "GRU + DeltaFlow loss, 2 sweeps",
                  "stack_3": "GRU + DeltaFlow loss, stack of 3", "delta_3": "DeltaFlow head and loss, delta of 3",
                  CORRECTED: "DeltaFlow head and loss, delta of 5",
                  PLANTED: "planted defect: delta of 5 reversed",
-                 "delta_5_no_ground": "DeltaFlow head and loss, delta of 5, ground dropped", "zero_flow": "zero flow"}
+                 "delta_5_no_ground": "DeltaFlow head and loss, delta of 5, ground dropped",
+                 "nsfp_pair": "paper model, NSFP pseudo-labels (ZeroFlow)", "seflow_pair": "GRU head, SeFlow's loss",
+                 "teflow_5": "DeltaFlow head, TeFlow's loss, delta of 5", "zero_flow": "zero flow"}
 REALISTIC_FLAGS = ("--realistic",)  # tools/make_synthetic_data.py: the sensor model
 PARTS = ("full", "filled")  # the held-out t0 sweeps with every variant's own history, and those before
+SUBSETS = (("train", "full"), ("eval", "full"), ("eval", "filled"))  # the (split, part) records each run reads
 REAL_AV2_LOG = os.path.join(ROOT, "data", "av2_sample_log")  # the real pair the 2-sweep variants are also scored on
 TABLE_COLUMNS = ("moving_mps", "stationary_mps", "three_way_mean_epe_m", "bucketed_dynamic_norm_epe")
 # The figures whose means the separations compare: the paper's error on moving points (m/s), and the mean dynamic
@@ -100,7 +132,7 @@ class Options:
 
     def sweeps(self) -> list[int]:
         """The numbers of sweeps the variants read, ascending (one set of records each)."""
-        return sorted({VARIANTS[v][0] for v in self.variants})
+        return sorted({VARIANTS[v].sweeps for v in self.variants})
 
     def history_rank(self) -> int:
         """The first rank (among a log's t0 sweeps) whose every past slot holds its own sweep for every variant: the
@@ -109,15 +141,32 @@ class Options:
 
     def as_json(self) -> dict:
         return {**dataclasses.asdict(self), "sets": list(self.sets), "seeds": list(self.seeds),
-                "formats": list(self.formats), "variants": {v: {"sweeps": VARIANTS[v][0], "set": list(VARIANTS[v][1])}
-                                                            for v in self.variants},
+                "formats": list(self.formats),
+                "variants": {v: {"sweeps": VARIANTS[v].sweeps, "set": list(VARIANTS[v].sets),
+                                 "train_set": list(VARIANTS[v].train_sets), "prepare": VARIANTS[v].prepare}
+                             for v in self.variants},
                 "set": self.config_sets()}
 
 
 def variant_sets(variant: str) -> list[str]:
-    """A variant's own overrides: its sweeps (and the pair's temporal default) and `VARIANTS`' sets."""
-    sweeps, sets = VARIANTS[variant]
-    return [f"data.num_frames={sweeps}", *sets]
+    """A variant's own overrides of its training and evaluation: its sweeps and `VARIANTS`' sets."""
+    return [f"data.num_frames={VARIANTS[variant].sweeps}", *VARIANTS[variant].sets]
+
+
+def preparation(variant: str, fmt: str, split: str) -> str:
+    """The key of `PREPARATIONS` whose fields the variant's records of `split` ("train", "eval") need in format
+    `fmt`, or "" (none)."""
+    prepare = VARIANTS[variant].prepare
+    if not prepare or (prepare == "ground" and fmt == "av2") or split not in PREPARATIONS[prepare][1]:
+        return ""
+    return prepare
+
+
+def prepared_part(variant: str, fmt: str, part: str) -> str:
+    """The records part (`train_full`, `eval_full`, `eval_filled`) a variant reads in format `fmt`: the part itself,
+    or the same part of its split's prepared records (`<part>_<preparation>`)."""
+    prepare = preparation(variant, fmt, part.split("_")[0])
+    return f"{part}_{prepare}" if prepare else part
 
 
 def stage_plan(options: Options, out_dir: str, tools_dir: str = TOOLS_DIR) -> list[Stage]:
@@ -133,6 +182,13 @@ def stage_plan(options: Options, out_dir: str, tools_dir: str = TOOLS_DIR) -> li
     def run_tool(variant, name):  # the planted variant runs the tools with the lab's planted fusions registered
         return [os.path.join(LAB_TOOLS_DIR, "run_planted.py"), tool(name)] if variant == PLANTED else [tool(name)]
 
+    def subsets(fmt, sweeps, split, prepare=""):  # the parts of one split's records (`subset_records`)
+        records, suffix = f"{out_dir}/{fmt}/records_{sweeps}", f"_{prepare}" if prepare else ""
+        return [Stage(f"subset_{fmt}_{split}_{part}{suffix}_{sweeps}",
+                      [os.path.join(LAB_TOOLS_DIR, "benchmark_sweeps.py"), "--subset", f"{records}/{split}{suffix}",
+                       f"{records}/{split}_{part}{suffix}", f"{part}:{rank}"], [f"{records}/{split}_{part}{suffix}"])
+                for s, part in SUBSETS if s == split]
+
     rank = options.history_rank()
     plan = []
     for fmt in options.formats:
@@ -147,29 +203,38 @@ def stage_plan(options: Options, out_dir: str, tools_dir: str = TOOLS_DIR) -> li
                             f"{data}/{split}" + (f"/{split}" if fmt == "av2" else ""), "--out_dir",
                             f"{records}/{split}"],
                            [f"{records}/{split}"]) for split in SPLIT_SEEDS]
-            plan += [Stage(f"subset_{fmt}_{split}_{part}_{sweeps}",
-                           [os.path.join(LAB_TOOLS_DIR, "benchmark_sweeps.py"), "--subset", f"{records}/{split}",
-                            f"{records}/{split}_{part}", f"{part}:{rank}"], [f"{records}/{split}_{part}"])
-                     for split, part in (("train", "full"), ("eval", "full"), ("eval", "filled"))]
+            plan += [stage for split in SPLIT_SEEDS for stage in subsets(fmt, sweeps, split)]
         protocol = ["--protocol", "av2"] if fmt == "av2" else []
         # Seed by seed, every variant of a seed before the next seed: a run cut short has whole seeds to compare.
         for seed, variant in ((seed, variant) for seed in options.seeds for variant in options.variants):
-            records = f"{out_dir}/{fmt}/records_{VARIANTS[variant][0]}"
+            records = f"{out_dir}/{fmt}/records_{VARIANTS[variant].sweeps}"
             run_dir = f"{out_dir}/{fmt}/{variant}/seed_{seed}"
             sets = flags([*variant_sets(variant), f"train.seed={seed}"])
+            for split, prepare in ((s, preparation(variant, fmt, s)) for s in SPLIT_SEEDS):
+                if not prepare or any(stage.outputs == [f"{records}/{split}_{prepare}"] for stage in plan):
+                    continue  # nothing to add, or added once for every variant
+                sweeps = VARIANTS[variant].sweeps
+                plan.append(Stage(f"prepare_{fmt}_{split}_{prepare}_{sweeps}",
+                                  [tool(PREPARATIONS[prepare][0]), "--config", options.config, "--input",
+                                   f"{records}/{split}", "--out_dir", f"{records}/{split}_{prepare}"],
+                                  [f"{records}/{split}_{prepare}"]))
+                plan += subsets(fmt, sweeps, split, prepare)
             plan.append(Stage(f"train_{fmt}_{variant}_{seed}",
-                              [*run_tool(variant, "train.py"), *config, *sets, "--data_dir",
-                               f"{records}/train_full", "--model_dir", f"{run_dir}/model"], [f"{run_dir}/model"]))
+                              [*run_tool(variant, "train.py"), *config, *sets,
+                               *flags(VARIANTS[variant].train_sets), "--data_dir",
+                               f"{records}/{prepared_part(variant, fmt, 'train_full')}", "--model_dir",
+                               f"{run_dir}/model"], [f"{run_dir}/model"]))
             plan += [Stage(f"eval_{fmt}_{variant}_{seed}_{part}",
                            [*run_tool(variant, "eval.py"), *config, *sets, *protocol, "--data_dir",
-                            f"{records}/eval_{part}", "--checkpoint", f"{run_dir}/model", "--out_dir",
-                            f"{run_dir}/eval_{part}"], [f"{run_dir}/eval_{part}"]) for part in PARTS]
-            if fmt == "av2" and VARIANTS[variant][0] == 2:  # and on the real Argoverse 2 pair of data/
+                            f"{records}/{prepared_part(variant, fmt, 'eval_' + part)}", "--checkpoint",
+                            f"{run_dir}/model", "--out_dir", f"{run_dir}/eval_{part}"], [f"{run_dir}/eval_{part}"])
+                     for part in PARTS]
+            if fmt == "av2" and VARIANTS[variant].sweeps == 2:  # and on the real Argoverse 2 pair of data/
                 plan.append(Stage(f"eval_real_{variant}_{seed}",
                                   [tool("eval.py"), *config, *sets, *protocol, "--data_dir",
                                    f"{out_dir}/real_av2/records", "--checkpoint", f"{run_dir}/model",
                                    "--out_dir", f"{run_dir}/eval_real"], [f"{run_dir}/eval_real"]))
-    if "av2" in options.formats and any(VARIANTS[v][0] == 2 for v in options.variants):
+    if "av2" in options.formats and any(VARIANTS[v].sweeps == 2 for v in options.variants):
         real = Stage("records_real_av2", [tool("write_pair_records.py"), "--source", "av2", "--config",
                                           options.config, "--input", REAL_AV2_LOG, "--out_dir",
                                           f"{out_dir}/real_av2/records"], [f"{out_dir}/real_av2/records"])
@@ -299,7 +364,7 @@ def summarize_again(result: dict, command: str) -> dict:
 def read_real(options: Options, out_dir: str) -> dict | None:
     """{variant: spread of each headline figure over the seeds} of the 2-sweep variants on the real Argoverse 2 pair
     (None without an av2 run)."""
-    variants = [v for v in options.variants if VARIANTS[v][0] == 2]
+    variants = [v for v in options.variants if VARIANTS[v].sweeps == 2]
     if "av2" not in options.formats or not variants:
         return None
     out = {}

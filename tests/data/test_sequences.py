@@ -57,6 +57,11 @@ def test_two_frames_are_the_pair(tiny_segment, tiny_config):
             np.testing.assert_array_equal(a[k].numpy(), b[k].numpy(), err_msg=k)
 
 
+def test_dropping_ground_from_examples_without_masks_is_a_config_error(tiny_segment, tiny_config):
+    with pytest.raises(ConfigError, match=r"data.drop_ground=true: these examples carry no is_ground_t0"):
+        pairs.batch_examples(pairs.pair_dataset([tiny_segment], tiny_config), 1, 1024, drop_ground=True)
+
+
 def test_batches_pad_and_mask_every_sweep(tiny_segment, tiny_config):
     cfg = _sequence_config(tiny_config, 4)
     batch = next(iter(pairs.batch_examples(pairs.pair_dataset([tiny_segment], cfg), 1, 1024)))

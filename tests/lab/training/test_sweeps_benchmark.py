@@ -24,7 +24,8 @@ def test_stage_plan_writes_records_per_sweeps_and_runs_every_variant_and_seed(tm
     assert [n for n in names if n.startswith("records_")] == [
         f"records_wod_{split}_{n}" for n in (2, 3, 5) for split in ("train", "eval")]
     # every number of sweeps split at the same rank: 5 sweeps read t0, its partner and 3 more
-    subsets = [s for s in plan if s.name.startswith("subset_")]
+    subsets = [s for s in plan if s.name.startswith("subset_") and not any(f"_{job}_" in s.name
+                                                                           for job in sb.PREPARATIONS)]
     assert [s.name for s in subsets] == [f"subset_wod_{sp}_{part}_{n}" for n in (2, 3, 5)
                                          for sp, part in (("train", "full"), ("eval", "full"), ("eval", "filled"))]
     assert all(s.command[-1].endswith(":3") for s in subsets)
@@ -43,6 +44,38 @@ def test_stage_plan_writes_records_per_sweeps_and_runs_every_variant_and_seed(tm
     assert command.index("train.learning_rate=1e-3") < command.index("data.num_frames=5")
     records_5 = next(s for s in plan if s.name == "records_wod_train_5")
     assert "data.num_frames=5" in " ".join(records_5.command)
+
+
+def test_variants_without_labels_or_ground_train_on_their_prepared_records(tmp_path):
+    """NSFP's pseudo-labels, self-supervision's fields and (on WOD, whose records carry none) every sweep's ground mask
+    are added once per split's records, whole (DUFOMap reads every sweep of a log), before those are cut into the
+    parts the runs read; the labels a variant trains on are set for its training only (its evaluation scores human
+    labels)."""
+    plan = sb.stage_plan(_options(formats=("wod", "av2")), str(tmp_path))
+    prepare = {s.name: s for s in plan if s.name.startswith("prepare_")}
+    assert sorted(prepare) == sorted(
+        [f"prepare_{fmt}_train_{job}" for fmt in ("wod", "av2") for job in ("pseudo_2", "self_2", "self_5")] +
+        ["prepare_wod_train_ground_5", "prepare_wod_eval_ground_5"])
+    ground = prepare["prepare_wod_eval_ground_5"]
+    assert ground.command[0].endswith("tools/add_ground_masks.py")
+    assert ground.command[-4:] == ["--input", f"{tmp_path}/wod/records_5/eval", "--out_dir",
+                                   f"{tmp_path}/wod/records_5/eval_ground"]
+    filled = next(s for s in plan if s.name == "subset_wod_eval_filled_ground_5")
+    assert filled.command[-3:] == [f"{tmp_path}/wod/records_5/eval_ground",
+                                   f"{tmp_path}/wod/records_5/eval_filled_ground", "filled:3"]
+    names = [s.name for s in plan]
+    assert names.index("prepare_wod_train_self_5") < names.index("subset_wod_train_full_self_5") < \
+        names.index("train_wod_teflow_5_0")
+    by_name = {s.name: " ".join(s.command) for s in plan}
+    teflow = by_name["train_wod_teflow_5_1"]
+    assert "--set data.labels=self --set train.loss=teflow" in teflow
+    assert f"--data_dir {tmp_path}/wod/records_5/train_full_self " in teflow
+    assert "data.labels" not in by_name["eval_wod_teflow_5_1_full"]
+    assert f"--data_dir {tmp_path}/wod/records_5/eval_full " in by_name["eval_wod_teflow_5_1_full"]
+    assert "records_5/eval_full_ground " in by_name["eval_wod_delta_5_no_ground_0_full"]
+    assert "records_5/eval_full " in by_name["eval_av2_delta_5_no_ground_0_full"]  # the raster's masks
+    assert "--set data.labels=pseudo" in by_name["train_av2_nsfp_pair_2"]
+    assert by_name["prepare_av2_train_pseudo_2"].split()[0].endswith("tools/pseudo_label.py")
 
 
 def test_spread_and_apart_by_hand():
