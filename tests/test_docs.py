@@ -814,7 +814,8 @@ def _separation(which: str, fmt: str, figure: str, unit: str) -> Calc:
     return Calc("{}", text, (V(_SW, f"formats/{fmt}/separations/{figure}/{which}"),))
 
 
-_SP = "sweeps_planted_av2.json"  # the instrument: a planted defect against the corrected delta
+# The instrument, a planted defect against the corrected delta: on the realistic profile's logs and the plain ones.
+_SP, _SP_PLAIN = "sweeps_planted_av2.json", "sweeps_planted_av2_plain.json"
 _SP_NAMES = {"paper_pair": "paper model, 2 sweeps", "gru_deltaflow_pair": "GRU + DeltaFlow loss, 2 sweeps",
              "stack_3": "GRU + DeltaFlow loss, stack of 3", "delta_3": "DeltaFlow head and loss, delta of 3",
              "delta_5": "DeltaFlow head and loss, delta of 5",
@@ -822,49 +823,56 @@ _SP_NAMES = {"paper_pair": "paper model, 2 sweeps", "gru_deltaflow_pair": "GRU +
              "delta_5_no_ground": "DeltaFlow head and loss, delta of 5, ground dropped", "zero_flow": "zero flow"}
 
 
-def _planted_cell(path):
-    return Calc("{}", lambda s: "n/a" if s["mean"] is None else f"{s['mean']:.3f} ± {s['std']:.3f}", (V(_SP, path),))
+def _planted_cell(file, path):
+    return Calc("{}", lambda s: "n/a" if s["mean"] is None else f"{s['mean']:.3f} ± {s['std']:.3f}",
+                (V(file, path),))
 
 
-def _planted_rows():
+def _planted_rows(file):
     """Per format, the full part's variants and zero flow, then the filled-history part's (where the run scored one):
     the rows `lab.training.sweeps_benchmark.table` writes."""
-    result = source(_SP)
+    result = source(file)
     rows = []
     for fmt, part in lookup(result, "formats").items():
         for label, prefix in ((fmt, f"formats/{fmt}"), (f"{fmt}, filled history", f"formats/{fmt}/filled")):
             if prefix.endswith("/filled") and "filled" not in part:
                 continue
             summary = lookup(result, prefix)
-            rows += [(label, _SP_NAMES[v], *(_planted_cell(f"{prefix}/per_variant/{v}/{c}") for c in _SW_COLUMNS))
+            rows += [(label, _SP_NAMES[v], *(_planted_cell(file, f"{prefix}/per_variant/{v}/{c}") for c in _SW_COLUMNS))
                      for v in summary["per_variant"]]
-            rows.append((label, _SP_NAMES["zero_flow"], *(_planted_cell(f"{prefix}/zero_flow/{c}") for c in _SW_COLUMNS)))
+            rows.append((label, _SP_NAMES["zero_flow"],
+                         *(_planted_cell(file, f"{prefix}/zero_flow/{c}") for c in _SW_COLUMNS)))
     return tuple(rows)
 
 
-PLANTED_TABLE = Table(
-    B, Quote(B, "`benchmarks/sweeps_planted_av2.json` (`{}`): {} training steps a run, seeds {}, `{}`, {} training and "
-                "{} held-out synthetic logs of {} sweeps each in the formats {} ({} points a sweep for Argoverse 2; "
-                "the generator's realistic profile: {}); error on the held-out t0 sweeps (Argoverse 2: the 2024 "
-                "challenge's protocol), mean ± sample standard deviation over the seeds, {} ({} cores):",
-             (V(_SP, "command"), V(_SP, "options/steps"),
-              Calc("{}", lambda s: ", ".join(map(str, s)), (V(_SP, "options/seeds"),)),
-              V(_SP, "options/config"), V(_SP, "options/train_segments"), V(_SP, "options/eval_segments"),
-              V(_SP, "options/frames_per_segment"), Calc("{}", lambda f: ", ".join(f), (V(_SP, "options/formats"),)),
-              V(_SP, "options/av2_points_per_sweep", "{:,}"),
-              Calc("{}", lambda r: "yes" if r else "no", (V(_SP, "options/realistic"),)),
-              V(_SP, "cpu/model_name"), V(_SP, "cpu/cpu_count"))),
-    ("data", "model", "moving (m/s)", "stationary (m/s)", "three-way mean EPE (m)", "bucketed dynamic (normalized)"),
-    "llrrrr", _planted_rows())
+def _planted_table(file):
+    return Table(
+        B, Quote(B, f"`benchmarks/{file}` (`{{}}`): {{}} training steps a run, seeds {{}}, `{{}}`, {{}} training and "
+                    "{} held-out synthetic logs of {} sweeps each in the formats {} ({} points a sweep for Argoverse "
+                    "2; the generator's realistic profile: {}); error on the held-out t0 sweeps (Argoverse 2: the "
+                    "2024 challenge's protocol), mean ± sample standard deviation over the seeds, {} ({} cores):",
+                 (V(file, "command"), V(file, "options/steps"),
+                  Calc("{}", lambda s: ", ".join(map(str, s)), (V(file, "options/seeds"),)),
+                  V(file, "options/config"), V(file, "options/train_segments"), V(file, "options/eval_segments"),
+                  V(file, "options/frames_per_segment"),
+                  Calc("{}", lambda f: ", ".join(f), (V(file, "options/formats"),)),
+                  V(file, "options/av2_points_per_sweep", "{:,}"),
+                  Calc("{}", lambda r: "yes" if r else "no", (V(file, "options/realistic"),)),
+                  V(file, "cpu/model_name"), V(file, "cpu/cpu_count"))),
+        ("data", "model", "moving (m/s)", "stationary (m/s)", "three-way mean EPE (m)", "bucketed dynamic (normalized)"),
+        "llrrrr", _planted_rows(file))
 
 
-def _instrument(fmt: str, figure: str, unit: str) -> Calc:
+PLANTED_TABLE, PLANTED_PLAIN_TABLE = _planted_table(_SP), _planted_table(_SP_PLAIN)
+
+
+def _instrument(file: str, fmt: str, figure: str, unit: str) -> Calc:
     """The sentence part of the planted defect against delta of 5 on one figure."""
     def text(s):
         verdict = "caught" if s["caught"] else "not caught"
         return (f"{s['difference']:.3f}{unit} apart against a seed range of {s['largest_range']:.3f}{unit}, the "
                 f"planted defect {'worse' if s['planted_worse'] else 'better'} ({verdict})")
-    return Calc("{}", text, (V(_SP, f"formats/{fmt}/instrument/{figure}"),))
+    return Calc("{}", text, (V(file, f"formats/{fmt}/instrument/{figure}"),))
 
 
 SWEEPS_COST_TABLE = Table(
@@ -883,7 +891,7 @@ SWEEPS_COST_TABLE = Table(
 TABLES = (LATENCY_TABLE, BF16_TABLE, MEMORY_TABLE, ONNX_TABLE, GPU_FORWARD_TABLE, GPU_TRAIN_TABLE, INPUT_TABLE,
           AV2_INPUT_TABLE, TRAINING_INPUT_TABLE, SIZING_TABLE, NSFP_SPEED_TABLE, NSFP_QUALITY_TABLE, DISTILLATION_TABLE,
           SOAK_TABLE, ONEDNN_TABLE, HEADS_TABLE, HEADS_SEED1_TABLE, SWEEPS_TABLE, SWEEPS_COST_TABLE,
-          PLANTED_TABLE, NSFP_SPEED_BANDS_TABLE)
+          PLANTED_TABLE, PLANTED_PLAIN_TABLE, NSFP_SPEED_BANDS_TABLE)
 
 _1M = "latency_cpu_1m.json"
 _AMD_DIFF = "summary/flow_difference_bfloat16_vs_float32_mps"
@@ -910,8 +918,8 @@ QUOTES = tuple(
            _separation("paper_pair_vs_best_variant", fmt, figure, unit)))
     for fmt in lookup(source(_SW), "formats") for figure, label, unit in _SEPARATIONS) + (
     *(Quote(B, f"{fmt.upper()}, {label}: the planted defect and `delta` of 5 are {{}}.",
-            (_instrument(fmt, figure, unit),))
-      for fmt in lookup(source(_SP), "formats") for figure, label, unit in _SEPARATIONS),
+            (_instrument(file, fmt, figure, unit),))
+      for file in (_SP, _SP_PLAIN) for fmt in lookup(source(file), "formats") for figure, label, unit in _SEPARATIONS),
     Quote(B, "The GRU variants train with DeltaFlow's gradient clip, `{}`, and a lower rate than the paper model's, "
              "`{}`: at the config's rate, on the benchmark's batch, their loss grew without bound",
           tuple(Calc("{}", lambda sets, key=key: next(s for s in sets if s.startswith(key)),
