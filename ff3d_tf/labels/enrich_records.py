@@ -22,6 +22,7 @@ import dataclasses
 import io
 import logging
 import os
+import time
 from typing import Callable, Iterator
 
 import numpy as np
@@ -142,11 +143,13 @@ class PairJob:
 def enrich_pairs(in_path: str, out_dir: str, job: PairJob, manifest: pair_records.Manifest,
                  out_manifest: pair_records.Manifest, counts: dict, skip_bad_records: bool = False) -> dict:
     """`job`'s fields of every pair of `in_path` into `out_dir` (same file name), resumable per pair (module
-    docstring). Returns `counts` (updated by the job's hooks and the reader), or {"already_done": 1}."""
+    docstring). Returns `counts` (updated by the job's hooks and the reader) with the file's `seconds`, or
+    {"already_done": 1}."""
     out_path = os.path.join(out_dir, os.path.basename(in_path))
     if tf.io.gfile.exists(out_path):
         _LOG.info("exists, skipped: %s", out_path)
         return {"already_done": 1}
+    t0 = time.time()
     parts = out_path + PARTS_SUFFIX
     tf.io.gfile.makedirs(parts)
     progress = beam_job.Progress(count_records(in_path, manifest), "pairs")
@@ -168,6 +171,7 @@ def enrich_pairs(in_path: str, out_dir: str, job: PairJob, manifest: pair_record
 
     pair_records.write_records_atomically(out_path, records(), out_manifest.compression)
     tf.io.gfile.rmtree(parts)
+    counts["seconds"] = time.time() - t0
     return counts
 
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 import functools
 import logging
 import os
-import time
 
 import numpy as np
 
@@ -101,12 +100,8 @@ def ground_file(in_path: str, out_dir: str, manifest: pair_records.Manifest, out
         if counts["pairs"] == 1 or counts["pairs"] % _LOG_EVERY_PAIRS == 0:
             _LOG.info("%s pair %d%s; %s", name, index, "" if fresh else " (kept from an earlier run)", progress_line)
 
-    t0 = time.time()
-    result = enrich_records.enrich_pairs(in_path, out_dir, enrich_records.PairJob(fields, compute, on_pair),
-                                         manifest, out_manifest, counts, skip_bad_records)
-    if "already_done" not in result:
-        result["seconds"] = time.time() - t0
-    return result
+    return enrich_records.enrich_pairs(in_path, out_dir, enrich_records.PairJob(fields, compute, on_pair),
+                                       manifest, out_manifest, counts, skip_bad_records)
 
 
 def run_ground_job(files: list[str], out_dir: str, beam_args: list[str] | None = None, written_by: str = "",

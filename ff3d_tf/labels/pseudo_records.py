@@ -192,12 +192,8 @@ def pseudo_label_file(in_path: str, out_dir: str, job: JobOptions, manifest: pai
         counts["points_t0"] += len(part[PSEUDO_VALID_KEY])
         counts["pseudo_labelled_points"] += int(part[PSEUDO_VALID_KEY].sum())
 
-    t0 = time.time()
-    result = enrich_records.enrich_pairs(in_path, out_dir, enrich_records.PairJob(PSEUDO_EXTRAS, compute, on_pair),
-                                         manifest, out_manifest, counts, skip_bad_records)
-    if "already_done" not in result:
-        result["seconds"] = time.time() - t0
-    return result
+    return enrich_records.enrich_pairs(in_path, out_dir, enrich_records.PairJob(PSEUDO_EXTRAS, compute, on_pair),
+                                       manifest, out_manifest, counts, skip_bad_records)
 
 
 SCORES_NAME = "pseudo_label_scores.json"
