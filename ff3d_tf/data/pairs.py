@@ -360,8 +360,7 @@ def batch_examples(ds: tf.data.Dataset, batch_size: int, bucket_base: int, drop_
     flow at t0's (its output's validity)."""
     ds = ds.padded_batch(batch_size, drop_remainder=drop_remainder)
     clouds = [c for c in schema.sweep_clouds(schema.MAX_NUM_FRAMES) if schema.cloud_keys(c)["xyz"] in ds.element_spec]
-    missing = [schema.GROUND_KEY_FORMAT.format(cloud=c) for c in clouds
-               if schema.GROUND_KEY_FORMAT.format(cloud=c) not in ds.element_spec]
+    missing = [k for k in (schema.GROUND_KEY_FORMAT.format(cloud=c) for c in clouds) if k not in ds.element_spec]
     if drop_ground and missing:
         raise ConfigError(f"data.drop_ground=true: these examples carry no {', '.join(missing)} (every sweep's ground "
                           "mask): read pair records that hold them (tools/add_ground_masks.py)")
