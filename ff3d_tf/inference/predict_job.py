@@ -196,8 +196,8 @@ def _user_cloud_pairs(sweeps: list[str], poses: list[np.ndarray] | None, intensi
             "already in the t0 vehicle frame (no ego-motion compensation)")
     if cfg.data.drop_ground:
         raise ConfigError("this model reads no ground point of any sweep (data.drop_ground=true), and point files "
-                          "carry no ground masks: write pair records of the sweeps, add the masks with "
-                          "tools/add_ground_masks.py and predict on those records")
+                          "carry no ground masks: remove each sweep's ground before serving them, or write pair "
+                          "records, add the masks (tools/add_ground_masks.py) and evaluate them (tools/eval.py)")
     raw_cfg = pairs.raw_pair_config(cfg)
     notes, frames = _Notes(log), {}
     for item in plan:
