@@ -114,3 +114,16 @@ def test_a_bad_point_file_fails_naming_it(tmp_path, tiny_checkpoint):
         predict_job.predict(load_config(None, TINY_OVERRIDES), tiny_checkpoint,
                             predict_job.PointFilePair(str(tmp_path / "a.npy"), str(tmp_path / "b.npy")),
                             str(tmp_path / "out"), log=lambda line: None)
+
+
+def test_point_files_are_refused_for_a_model_that_drops_ground(tmp_path):
+    """A `data.drop_ground` model reads no ground point of any sweep; point files carry no ground masks, so their
+    pairs stop before any is read, saying what to do instead."""
+    from ff3d_tf.config import ConfigError
+    cfg = replace_config(load_config(None, list(TINY_OVERRIDES)), {"data.source": "pair_records",
+                                                                   "data.drop_ground": True})
+    _sweeps_dir(tmp_path / "sweeps", [50, 50])
+    paths = [str(tmp_path / "sweeps" / f"{k:06d}.npy") for k in range(2)]
+    with pytest.raises(ConfigError, match=r"data.drop_ground=true.*point files carry no ground masks.*"
+                                          r"tools/add_ground_masks.py"):
+        next(predict_job._user_cloud_pairs(paths, None, None, cfg, print, [0, 100_000_000], [], "previous"))
