@@ -16,6 +16,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
 
 import _common  # noqa: E402  (puts the repository root on sys.path too)
+from lab import tool_args  # noqa: E402
 
 from lab import paths  # noqa: E402
 from lab.children import ChildError  # noqa: E402
@@ -36,7 +37,7 @@ def main():
     p.add_argument("--work_dir", default=None, help="demo data and models (default: a temporary directory; "
                                                     "given, existing data and finished runs are reused)")
     args = p.parse_args()
-    points = _common.int_list(p, args.points, "--points")
+    points = tool_args.int_list(p, args.points, "--points")
     if not points:
         p.error("--points: at least one point count")
     try:
@@ -46,7 +47,7 @@ def main():
     except ChildError as e:
         sys.exit(str(e))
     print(json.dumps(results["summary"], indent=1))
-    _common.json_saver(args.out)(results)
+    tool_args.json_saver(args.out)(results)
     print(f"wrote {args.out}")
 
 

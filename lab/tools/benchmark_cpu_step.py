@@ -20,6 +20,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
 
 import _common  # noqa: E402  (puts the repository root on sys.path too)
+from lab import tool_args  # noqa: E402
 
 from lab import paths  # noqa: E402
 from lab.training import cpu_step_study  # noqa: E402
@@ -49,13 +50,13 @@ def main():
     args = p.parse_args()
     if args.resummarize:
         with open(args.out) as f:
-            _common.json_saver(args.out)(cpu_step_study.resummarize(json.load(f)))
+            tool_args.json_saver(args.out)(cpu_step_study.resummarize(json.load(f)))
         return
     _common.load(args)  # validates the config and --set here, before any child starts
     words = {name: [w for w in getattr(args, name).split(",") if w] for name in ("modes", "jobs", "settings")}
-    save = _common.json_saver(args.out)
+    save = tool_args.json_saver(args.out)
     cpu_step_study.study(
-        args.config or "", args.set, args.train_points, _common.int_list(p, args.forward_points, "--forward_points"),
+        args.config or "", args.set, args.train_points, tool_args.int_list(p, args.forward_points, "--forward_points"),
         words["modes"], words["jobs"], words["settings"], args.cap, args.steps, args.warmup, args.runs,
         not args.no_stages, args.stage_runs, args.cores, args.timeout_s,
         save=lambda result: save({**result, "command": "python lab/tools/benchmark_cpu_step.py " + " ".join(

@@ -16,6 +16,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
 
 import _common  # noqa: E402  (puts the repository root on sys.path too)
+from lab import tool_args  # noqa: E402
 
 from lab import paths  # noqa: E402
 from lab.training import head_cost  # noqa: E402
@@ -36,11 +37,11 @@ def main():
     p.add_argument("--timeout_s", type=float, default=None, help="stop a child after this long (recorded)")
     args = p.parse_args()
     _common.load(args)  # the config and --set checked here, before any child starts
-    save = _common.json_saver(args.out)
+    save = tool_args.json_saver(args.out)
     try:
         result = head_cost.run(
-            args.config or "", args.set, _common.int_list(p, args.points, "--points"), args.train_points,
-            gru_iterations=_common.int_list(p, args.gru_iterations, "--gru_iterations"), runs=args.runs,
+            args.config or "", args.set, tool_args.int_list(p, args.points, "--points"), args.train_points,
+            gru_iterations=tool_args.int_list(p, args.gru_iterations, "--gru_iterations"), runs=args.runs,
             warmup=args.warmup, steps=args.steps, rounds=args.rounds, cores=args.cores, timeout_s=args.timeout_s,
             command="python lab/tools/benchmark_head_cost.py " + " ".join(sys.argv[1:]),
             log=lambda line: print(line, flush=True), save=save)

@@ -17,6 +17,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
 
 import _common  # noqa: E402  (puts the repository root on sys.path too)
+from lab import tool_args  # noqa: E402
 
 
 def main():
@@ -35,7 +36,7 @@ def main():
                    help="no conv floor (its buffers stay resident and count in the later calls' memory)")
     p.add_argument("--out", default="latency.json")
     args = p.parse_args()
-    points = _common.int_list(p, args.points, "--points")
+    points = tool_args.int_list(p, args.points, "--points")
     cfg = _common.load(args)
     try:
         precisions = latency.precision_settings(args.precisions, cfg.model.mixed_precision)
@@ -44,7 +45,7 @@ def main():
     results = latency.run(cfg, (args.modes or cfg.model.compile).split(","), precisions, points, args.runs,
                           args.train_points, not args.skip_conv_floor, bench_steps.example, bench_steps.train_steps,
                           log=lambda line: print(line, flush=True))
-    _common.json_saver(args.out)(results)
+    tool_args.json_saver(args.out)(results)
     print(json.dumps(results["ratios"]))
 
 

@@ -18,6 +18,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
 
 import _common  # noqa: E402  (puts the repository root on sys.path too)
+from lab import tool_args  # noqa: E402
 
 from lab import paths  # noqa: E402
 from lab.children import ChildError  # noqa: E402
@@ -39,7 +40,7 @@ def main():
                                           log_fn=lambda line: print(line, flush=True))
     except (ValueError, ChildError) as e:
         sys.exit(f"error: {e}")
-    _common.json_saver(args.out)(result)
+    tool_args.json_saver(args.out)(result)
     print(json.dumps(result["summary"], indent=1))
 
 

@@ -17,6 +17,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
 
 import _common  # noqa: E402  (puts the repository root on sys.path too)
+from lab import tool_args  # noqa: E402
 
 
 def main():
@@ -35,7 +36,7 @@ def main():
     results = {"note": args.note, "config": args.config, "overrides": args.set,
                **onnx_timing.run(cfg, args.checkpoint, args.points, args.runs, args.threads, args.variants.split(","),
                                  log=lambda line: print(line, flush=True))}
-    _common.json_saver(args.out)(results)
+    tool_args.json_saver(args.out)(results)
     print(json.dumps(onnx_timing.headline(results), indent=1))
 
 

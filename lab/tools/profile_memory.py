@@ -24,6 +24,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
 
 import _common  # noqa: E402  (puts the repository root on sys.path too)
+from lab import tool_args  # noqa: E402
 
 from lab import paths  # noqa: E402
 from lab.training import cpu_studies  # noqa: E402
@@ -54,7 +55,7 @@ def main(argv=None):
             args.child_timeout_s, args.note, log_fn=lambda line: print(line, flush=True))
     except ValueError as e:
         sys.exit(f"error: {e}")
-    _common.json_saver(args.out)(result)
+    tool_args.json_saver(args.out)(result)
 
 
 if __name__ == "__main__":

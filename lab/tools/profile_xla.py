@@ -14,6 +14,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
 
 import _common  # noqa: E402  (puts the repository root on sys.path too; imports no TensorFlow)
+from lab import tool_args  # noqa: E402
 
 from ff3d_tf.xla_export_dir import ExportFormatError  # noqa: E402
 from lab.inference import xla_profile  # noqa: E402
@@ -33,13 +34,13 @@ def main():
     p.add_argument("--out", default=None, help="JSON file of the results")
     args = p.parse_args()
     variants = None if args.variants is None else [v for v in args.variants.split(",") if v]
-    save = _common.json_saver(args.out)
+    save = tool_args.json_saver(args.out)
     import jax
     device = jax.devices()[0]
     result = {"jax": jax.__version__, "platform": device.platform,
               "device": getattr(device, "device_kind", str(device)), "export_dir": args.export_dir, "rows": []}
     try:
-        for points in _common.int_list(p, args.points, "--points"):
+        for points in tool_args.int_list(p, args.points, "--points"):
             result["rows"] += xla_profile.profile_export(args.export_dir, points, args.precision, args.runs,
                                                          args.warmup, args.trace_runs, variants, args.bake_weights)
             save(result)

@@ -17,6 +17,7 @@ import sys
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "tools"))
 
 import _common  # noqa: E402  (puts the repository root on sys.path too; imports no TensorFlow)
+from lab import tool_args  # noqa: E402
 
 from ff3d_tf import xla_program  # noqa: E402
 from lab.labels import nsfp_timing  # noqa: E402
@@ -34,8 +35,8 @@ def main():
     p.add_argument("--budget_s", type=float, default=None, help="start no entry after this many seconds")
     p.add_argument("--out", default=None, help="JSON file of the results")
     args = p.parse_args()
-    points = _common.int_list(p, args.points, "--points")
-    save = _common.json_saver(args.out)
+    points = tool_args.int_list(p, args.points, "--points")
+    save = tool_args.json_saver(args.out)
 
     try:
         result = nsfp_timing.run_export(args.export_dir, args.runs, args.pair_steps, args.pair_runs,
